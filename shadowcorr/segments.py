@@ -1,0 +1,177 @@
+"""Stage 1: scene bundle -> segments (partial 3D surface shells, one per mask blob).
+
+Each view's instance mask is cut into blobs: every instance value is split into its
+8-connected components (``split_components``), blobs smaller than ``min_blob_pixels``
+are ignored, and the pixels with valid depth are back-projected through the pinhole
+model ``((u - cx) d / fx, (v - cy) d / fy, d)`` in the OpenCV optical frame and moved
+to the world frame with the view's camera-to-world pose.  Points come out in the
+configuration's units.
+
+Segments are a ragged batch: all points concatenated, with explicit per-segment
+``lengths`` (the PyTorch3D convention), so later stages never loop over points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .bundle import SceneBundle, View, unit_scale
+from .config import ShadowCorrConfig
+
+_EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
+
+
+@dataclass
+class Segments:
+    """Ragged batch of segments. Lengths in the configuration's units, world frame."""
+
+    points: np.ndarray  # (P, 3) float64
+    lengths: np.ndarray  # (S,) int64, number of points of each segment
+    view: np.ndarray  # (S,) int64, index into view_names
+    instance: np.ndarray  # (S,) int64, the mask value
+    component: np.ndarray  # (S,) int64, blob index within (view, instance), largest first
+    num_pixels: np.ndarray  # (S,) int64, blob size in the mask (valid depth or not)
+    camera_center: np.ndarray  # (S, 3) float64
+    optical_axis: np.ndarray  # (S, 3) float64, unit vector
+    view_names: list[str]
+    truth: np.ndarray | None = None  # (S,) int64 ground-truth object per segment, metrics only
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.lengths.shape[0])
+
+    @property
+    def segment_index(self) -> np.ndarray:
+        """(P,) segment index of every point."""
+        return np.repeat(np.arange(self.num_segments), self.lengths)
+
+
+def _blobs(mask: np.ndarray, split: bool, min_pixels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Label image of blobs (0 = none) with per-blob instance, component and pixel count.
+
+    Blob labels are ordered by (instance, component) and components of one instance by
+    decreasing size, so the numbering does not depend on scan order quirks.
+    """
+    blob_image = np.zeros(mask.shape, dtype=np.int64)
+    instances, components, sizes = [], [], []
+    next_label = 1
+    ids = np.unique(mask)
+    ids = ids[ids != 0]
+    slices = ndimage.find_objects(mask) if mask.max() < 1 << 24 else None
+    for inst in ids:  # one iteration per instance value, not per pixel
+        window = slices[inst - 1] if slices is not None and inst - 1 < len(slices) else (slice(None), slice(None))
+        sub = mask[window] == inst
+        if split:
+            labels, n = ndimage.label(sub, structure=_EIGHT_CONNECTED)
+            counts = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+        else:
+            labels, n, counts = sub.astype(np.int64), 1, np.array([int(sub.sum())])
+        order = np.argsort(-counts, kind="stable")
+        keep = order[counts[order] >= max(min_pixels, 1)]
+        if keep.size == 0:
+            continue
+        remap = np.zeros(n + 1, dtype=np.int64)
+        remap[keep + 1] = np.arange(next_label, next_label + keep.size)
+        target = blob_image[window]
+        new = remap[labels]
+        target[new > 0] = new[new > 0]
+        instances.extend([int(inst)] * keep.size)
+        components.extend(range(keep.size))
+        sizes.extend(counts[keep].tolist())
+        next_label += keep.size
+    return (
+        blob_image,
+        np.asarray(instances, dtype=np.int64),
+        np.asarray(components, dtype=np.int64),
+        np.asarray(sizes, dtype=np.int64),
+    )
+
+
+def _back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    k = view.intrinsics
+    cam = np.stack(
+        [(pixels_u - k.cx) * depth / k.fx, (pixels_v - k.cy) * depth / k.fy, depth], axis=1
+    )
+    return cam @ view.pose[:3, :3].T + view.pose[:3, 3]
+
+
+def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Segments:
+    """Cut every view into segments and back-project them (see the module docstring)."""
+    config = config or ShadowCorrConfig()
+    scale = unit_scale(bundle.units, config.units)
+    if bundle.point_segments is not None:
+        return _from_point_segments(bundle, scale)
+
+    points, lengths, view_idx, instances, components, pixels, centers, axes, truth = ([] for _ in range(9))
+    max_depth_bundle = config.max_depth / scale
+    for vi, view in enumerate(bundle.views):
+        depth = view.depth
+        valid = np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle)
+        blob_image, inst, comp, sizes = _blobs(view.mask, config.split_components, config.min_blob_pixels)
+        if inst.size == 0:
+            continue
+        on = (blob_image > 0) & valid
+        vv, uu = np.nonzero(on)
+        blob_of_pixel = blob_image[vv, uu] - 1
+        order = np.argsort(blob_of_pixel, kind="stable")
+        vv, uu, blob_of_pixel = vv[order], uu[order], blob_of_pixel[order]
+        pts = _back_project(view, vv.astype(np.float64), uu.astype(np.float64), depth[vv, uu].astype(np.float64))
+        points.append(pts * scale)
+        lengths.append(np.bincount(blob_of_pixel, minlength=inst.size))
+        view_idx.append(np.full(inst.size, vi))
+        instances.append(inst)
+        components.append(comp)
+        pixels.append(sizes)
+        centers.append(np.repeat(view.camera_center[None] * scale, inst.size, axis=0))
+        axes.append(np.repeat(view.optical_axis[None], inst.size, axis=0))
+        if bundle.ground_truth == "instance":
+            truth.append(inst.copy())
+        elif bundle.ground_truth == "mapped":
+            table = view.instance_objects or {}
+            truth.append(np.array([table.get(int(i), -1) for i in inst], dtype=np.int64))
+
+    if not lengths:
+        empty3 = np.zeros((0, 3))
+        return Segments(empty3, *(np.zeros(0, dtype=np.int64) for _ in range(5)), empty3, empty3,
+                        [v.name for v in bundle.views], None)
+    return Segments(
+        points=np.concatenate(points),
+        lengths=np.concatenate(lengths).astype(np.int64),
+        view=np.concatenate(view_idx).astype(np.int64),
+        instance=np.concatenate(instances),
+        component=np.concatenate(components),
+        num_pixels=np.concatenate(pixels),
+        camera_center=np.concatenate(centers),
+        optical_axis=np.concatenate(axes),
+        view_names=[v.name for v in bundle.views],
+        truth=np.concatenate(truth) if truth else None,
+    )
+
+
+def _from_point_segments(bundle: SceneBundle, scale: float) -> Segments:
+    ps = bundle.point_segments
+    view = np.asarray(ps.view, dtype=np.int64)
+    poses = np.stack([v.pose for v in bundle.views])
+    num = np.asarray(ps.lengths, dtype=np.int64)
+    # Components: numbered in listing order within (view, instance).
+    key = view * (int(np.max(ps.instance, initial=0)) + 1) + np.asarray(ps.instance, dtype=np.int64)
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    first = np.searchsorted(sorted_key, sorted_key, side="left")
+    component = np.empty_like(key)
+    component[order] = np.arange(key.size) - first
+    return Segments(
+        points=np.asarray(ps.points, dtype=np.float64) * scale,
+        lengths=num,
+        view=view,
+        instance=np.asarray(ps.instance, dtype=np.int64),
+        component=component,
+        num_pixels=num.copy(),
+        camera_center=poses[view, :3, 3] * scale,
+        optical_axis=poses[view, :3, 2],
+        view_names=[v.name for v in bundle.views],
+        truth=None if ps.object is None else np.asarray(ps.object, dtype=np.int64),
+    )
