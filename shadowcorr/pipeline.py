@@ -1,0 +1,94 @@
+"""The stage API: ``prepare`` -> ``embed`` -> ``assign``, and ``correspond`` composing them.
+
+``prepare`` and ``assign`` are per scene and CPU-bound (the HTTP service runs them in
+worker processes); ``embed`` takes a list of prepared scenes and runs the network
+once over all of them (the service batches concurrent requests through it).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Sequence
+
+import numpy as np
+
+from .assign import assign
+from .bundle import SceneBundle, unit_scale
+from .config import ShadowCorrConfig
+from .nn import Model, load_model, run_batched
+from .result import ModelInfo, Result
+from .segments import extract_segments
+from .shadows import cast_shadows, segment_shells
+from .voxel_scene import VoxelScene, build_voxel_scene
+
+
+def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> VoxelScene:
+    """Segments, shadows, consensus voxels and network features of one scene."""
+    config = config or ShadowCorrConfig()
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    segments = extract_segments(bundle, config)
+    timings["segments"] = (time.perf_counter() - t0) * 1e3
+    t0 = time.perf_counter()
+    shells = segment_shells(segments, config)
+    timings["shells"] = (time.perf_counter() - t0) * 1e3
+    t0 = time.perf_counter()
+    shadows = cast_shadows(segments, shells, config)
+    timings["shadows"] = (time.perf_counter() - t0) * 1e3
+    scene = build_voxel_scene(
+        bundle.name, bundle.units, unit_scale(bundle.units, config.units), segments, shells, shadows, config, timings
+    )
+    scene.warnings[:0] = list(bundle.warnings)
+    return scene
+
+
+def check_compatible(model: Model, config: ShadowCorrConfig) -> None:
+    """The scene must be voxelised as the model was trained (same voxel size and units)."""
+    card = model.card
+    if card.units != config.units or abs(card.voxel_size - config.voxel_size) > 1e-9:
+        raise ValueError(
+            f"model {card.name!r} expects voxel_size {card.voxel_size} {card.units}, "
+            f"the configuration has {config.voxel_size} {config.units}"
+        )
+    if len(card.features) != config.feature_dim:
+        raise ValueError(f"model {card.name!r} takes {len(card.features)} features, the configuration makes {config.feature_dim}")
+
+
+def embed(model: Model, scenes: Sequence[VoxelScene]) -> list[np.ndarray]:
+    """Network embeddings of several prepared scenes in one forward pass (ragged batch)."""
+    for scene in scenes:
+        check_compatible(model, scene.config)
+    return run_batched(model, [s.features for s in scenes], [s.voxel_index for s in scenes])
+
+
+def baseline_embeddings(scene: VoxelScene) -> np.ndarray:
+    """The paper's MeanShift baseline clusters normalised confidence and position, no network."""
+    return np.ascontiguousarray(scene.features[:, :4])
+
+
+def model_info(model: Model) -> ModelInfo:
+    return ModelInfo(name=model.name, version=model.version, sha256=model.sha256)
+
+
+def correspond(
+    bundle: SceneBundle,
+    model: Model | None = None,
+    config: ShadowCorrConfig | None = None,
+    *,
+    metrics: bool = True,
+) -> Result:
+    """Label every segment of one scene: ``assign(prepare(bundle), embed(model, [scene])[0])``.
+
+    ``model`` defaults to the packaged default model.  With ``config.method ==
+    'meanshift'`` the paper's baseline runs instead and no model is used.  Metrics are
+    added when ``metrics`` is true and the bundle carries ground truth.
+    """
+    config = config or ShadowCorrConfig()
+    scene = prepare(bundle, config)
+    if config.method == "meanshift":
+        return assign(scene, baseline_embeddings(scene), config, metrics=metrics)
+    model = model or load_model()
+    t0 = time.perf_counter()
+    (embeddings,) = embed(model, [scene])
+    scene.timings_ms["network"] = (time.perf_counter() - t0) * 1e3
+    return assign(scene, embeddings, config, model=model_info(model), metrics=metrics)
