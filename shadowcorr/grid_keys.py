@@ -39,3 +39,20 @@ def _unpacker(lo: np.ndarray, bits: list[int]):
         return group, np.stack([x, y, z], axis=1) + lo
 
     return unpack
+
+
+def unique_keys(keys: np.ndarray, return_inverse: bool = False):
+    """Sorted unique int64 keys (and optionally the inverse map), by sorting.
+
+    NumPy >= 2.3 answers ``np.unique`` on integers with a hash table, which is many
+    times slower than one sort when most of a million keys are distinct.
+    """
+    if not return_inverse:
+        s = np.sort(keys)
+        return s[np.r_[True, s[1:] != s[:-1]]] if s.size else s
+    order = np.argsort(keys)
+    s = keys[order]
+    new = np.r_[True, s[1:] != s[:-1]] if s.size else np.zeros(0, dtype=bool)
+    inverse = np.empty(keys.size, dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return s[new], inverse

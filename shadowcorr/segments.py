@@ -58,12 +58,19 @@ def _blobs(mask: np.ndarray, split: bool, min_pixels: int) -> tuple[np.ndarray, 
     blob_image = np.zeros(mask.shape, dtype=np.int64)
     instances, components, sizes = [], [], []
     next_label = 1
-    ids = np.unique(mask)
-    ids = ids[ids != 0]
-    slices = ndimage.find_objects(mask) if mask.max() < 1 << 24 else None
-    for inst in ids:  # one iteration per instance value, not per pixel
-        window = slices[inst - 1] if slices is not None and inst - 1 < len(slices) else (slice(None), slice(None))
-        sub = mask[window] == inst
+    values = mask
+    if mask.size and int(mask.max()) >= 1 << 20:  # sparse large ids: renumber before find_objects
+        ids, inverse = np.unique(mask, return_inverse=True)
+        values = inverse.reshape(mask.shape) + (0 if ids[0] == 0 else 1)
+        ids = ids if ids[0] == 0 else np.r_[0, ids]
+    else:
+        ids = np.arange(int(mask.max(initial=0)) + 1)
+    slices = ndimage.find_objects(values)
+    for label, window in enumerate(slices, start=1):  # one iteration per instance value, not per pixel
+        if window is None:
+            continue
+        inst = ids[label]
+        sub = values[window] == label
         if split:
             labels, n = ndimage.label(sub, structure=_EIGHT_CONNECTED)
             counts = np.bincount(labels.ravel(), minlength=n + 1)[1:]
@@ -92,10 +99,11 @@ def _blobs(mask: np.ndarray, split: bool, min_pixels: int) -> tuple[np.ndarray, 
 
 def _back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: np.ndarray) -> np.ndarray:
     k = view.intrinsics
-    cam = np.stack(
-        [(pixels_u - k.cx) * depth / k.fx, (pixels_v - k.cy) * depth / k.fy, depth], axis=1
-    )
-    return cam @ view.pose[:3, :3].T + view.pose[:3, 3]
+    x = (pixels_u - k.cx) * depth / k.fx
+    y = (pixels_v - k.cy) * depth / k.fy
+    r, t = view.pose[:3, :3], view.pose[:3, 3]
+    # Written out per axis: numpy's (N, 3) @ (3, 3) takes a slow non-BLAS path.
+    return np.stack([r[i, 0] * x + r[i, 1] * y + r[i, 2] * depth + t[i] for i in range(3)], axis=1)
 
 
 def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Segments:

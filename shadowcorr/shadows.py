@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import ShadowCorrConfig
-from .grid_keys import pack_cell_keys
+from .grid_keys import pack_cell_keys, unique_keys
 from .segments import Segments
 
 
@@ -184,7 +184,7 @@ def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrCo
     cell = np.round(all_pts / v).astype(np.int64)
     inside = np.all(np.abs(all_pts - cell * v) <= config.chebyshev_fraction * v, axis=1)
     key, unpack = pack_cell_keys(all_seg[inside], cell[inside])
-    vox_seg, vox_cell = unpack(np.unique(key))
+    vox_seg, vox_cell = unpack(unique_keys(key))
 
     # Confidence: distance from the voxel centre to the segment's nearest surface point.
     centres = vox_cell * v

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import ShadowCorrConfig
-from .grid_keys import pack_cell_keys
+from .grid_keys import pack_cell_keys, unique_keys
 from .segment_embedding import cooccurrence, train_segment_embeddings, voxel_embeddings
 from .segments import Segments
 from .shadows import ShadowVoxels, SegmentShells
@@ -92,7 +92,7 @@ def build_voxel_scene(
     t0 = time.perf_counter()
 
     key, unpack = pack_cell_keys(np.zeros_like(shadows.segment), shadows.cell)
-    uniq, voxel_of_member = np.unique(key, return_inverse=True)
+    uniq, voxel_of_member = unique_keys(key, return_inverse=True)
     gamma_all = np.bincount(voxel_of_member, weights=shadows.confidence, minlength=uniq.size)
     if uniq.size:
         threshold = np.percentile(gamma_all, config.gamma_percentile)
