@@ -109,14 +109,19 @@ def build_voxel_scene(
     v = voxel_index.shape[0]
 
     has_voxel = np.bincount(member_segment, minlength=s) > 0
+    has_shadow = np.bincount(shadows.segment, minlength=s) > 0
     orphans = np.flatnonzero(~has_voxel)
     orphan_member = np.isin(shadows.segment, orphans)
-    for o in orphans:
-        reason = "no surviving voxel" if shells.count[o] > 0 else "no valid 3D points"
+    for o in orphans:  # a few segments at most
+        if has_shadow[o]:
+            why, how = "no surviving voxel", "labelled by the kept voxels nearest to its own shadow"
+        elif shells.count[o] > 0:
+            why, how = "no shadow voxel", "labelled by the kept voxel nearest to its centroid"
+        else:
+            why, how = "no valid 3D point", "given an object of its own"
         warnings.append(
             f"segment {o} (view {segments.view_names[segments.view[o]]}, instance {segments.instance[o]}, "
-            f"component {segments.component[o]}): {reason}; labelled from "
-            + ("its unfiltered shadow voxels" if orphan_member[shadows.segment == o].any() or shells.count[o] > 0 else "the nearest object")
+            f"component {segments.component[o]}): {why}; {how}"
         )
     timings_ms["consensus"] = (time.perf_counter() - t0) * 1e3
 

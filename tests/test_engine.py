@@ -1,0 +1,194 @@
+"""The correspondence engine, stage by stage, on analytic sphere scenes and the real sample."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
+from shadowcorr.bundle import SceneBundle, View
+from shadowcorr.segment_embedding import cooccurrence, segment_embedding_loss, train_segment_embeddings
+from shadowcorr.segments import extract_segments
+from shadowcorr.shadows import beta_profile, cast_shadows, segment_shells, voxel_downsample
+
+from .scenes import sphere_scene
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+REFERENCE = SHARED / "reference" / "shadowcorr_best.pth"
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
+
+
+def same_partition(a, b) -> bool:
+    """Two labelings describe the same grouping (up to renaming)."""
+    a, b = np.asarray(a), np.asarray(b)
+    pairs = set(zip(a.tolist(), b.tolist()))
+    return len(pairs) == len(set(a.tolist())) == len(set(b.tolist()))
+
+
+def test_beta_profile_peaks_at_mode():
+    x = np.linspace(0, 1, 100001)
+    phi = beta_profile(x, 1.41, 1.94)
+    assert phi.max() == pytest.approx(1.0, abs=1e-6)
+    assert x[np.argmax(phi)] == pytest.approx(0.41 / 1.35, abs=1e-4)
+    assert phi[0] == 0 and phi[-1] == 0
+
+
+def test_voxel_downsample_averages_per_cell_and_segment():
+    pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [0.1, 0.1, 0.1], [5.0, 5.0, 5.0]])
+    seg = np.array([0, 0, 1, 1])
+    out, out_seg = voxel_downsample(pts, seg, 2.0)
+    assert out_seg.tolist() == [0, 1, 1]
+    np.testing.assert_allclose(out[0], [0.2, 0.2, 0.2])
+
+
+def test_segments_split_components_and_ignore_small_blobs():
+    k = sphere_scene([[0, 0, 0]], [40]).views[0].intrinsics
+    depth = np.full((k.height, k.width), 700.0, np.float32)
+    mask = np.zeros((k.height, k.width), np.int32)
+    mask[10:40, 10:40] = 3  # blob A (900 px)
+    mask[100:130, 200:240] = 3  # blob B of the same instance (1200 px)
+    mask[150:155, 5:10] = 3  # 25 px: ignored
+    mask[60:80, 60:80] = 5
+    depth[60:70, 60:80] = 0  # half of instance 5 has no valid depth
+    pose = np.eye(4)
+    bundle = SceneBundle(units="cm", views=[View("v", pose, k, depth, mask)])
+    seg = extract_segments(bundle, ShadowCorrConfig())
+    assert seg.instance.tolist() == [3, 3, 5]
+    assert seg.component.tolist() == [0, 1, 0]
+    assert seg.num_pixels.tolist() == [1200, 900, 400]
+    assert seg.lengths.tolist() == [1200, 900, 200]
+    merged = extract_segments(bundle, ShadowCorrConfig(split_components=False))
+    assert merged.instance.tolist() == [3, 5] and merged.lengths[0] == 1200 + 900 + 25
+
+
+def test_back_projection_lies_on_the_sphere():
+    bundle = sphere_scene([[0, 0, 0]], [50])
+    seg = extract_segments(bundle, ShadowCorrConfig())
+    r = np.linalg.norm(seg.points, axis=1)
+    assert seg.num_segments == 4
+    assert np.abs(r - 50).max() < 0.05
+
+
+def test_shadows_fill_the_interior():
+    bundle = sphere_scene([[0, 0, 0]], [60])
+    cfg = ShadowCorrConfig()
+    seg = extract_segments(bundle, cfg)
+    shells = segment_shells(seg, cfg)
+    shadows = cast_shadows(seg, shells, cfg)
+    centres = shadows.cell * cfg.voxel_size
+    # Voxels reach well behind the visible shell, into the sphere's interior.
+    assert np.linalg.norm(centres, axis=1).min() < 30
+    assert np.all(shadows.confidence > cfg.min_confidence)
+
+
+# A small "rock field" of spheres in the reference data's size range; spheres 1 and 2 touch.
+FIELD_CENTRES = [[-50, 0, 0], [50, 0, 0], [-250, 150, 0], [200, -200, 10], [0, 250, 0], [250, 150, 0],
+                 [-200, -200, 0], [-40, -150, 0]]
+FIELD_RADII = [50, 50, 40, 60, 45, 35, 55, 30]
+
+
+def test_spheres_seen_from_opposite_sides_become_one_object_each(model):
+    # Two cameras 180 degrees apart: their visible shells of one sphere share no surface.
+    bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII, cameras=2, width=480, height_px=270)
+    result = correspond(bundle, model)
+    truth = [s.instance for s in result.segments]
+    assert len(result.labels) == 16
+    assert same_partition(result.labels, truth), (result.labels, truth)
+    assert result.metrics["average_purity"] == 100.0
+
+
+def test_touching_spheres_stay_apart(model):
+    bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII, cameras=4, width=480, height_px=270)
+    result = correspond(bundle, model)
+    labels = np.array(result.labels)
+    truth = np.array([s.instance for s in result.segments])
+    assert same_partition(labels, truth), (labels.tolist(), truth.tolist())
+    touching = {s.object for s in result.segments if s.instance in (1, 2)}
+    assert len(touching) == 2
+
+
+def test_result_is_independent_of_units_and_view_order(model):
+    centres, radii = FIELD_CENTRES, FIELD_RADII
+    cm = sphere_scene(centres, radii, cameras=3)
+    base = correspond(cm, model)
+    metres = sphere_scene(np.array(centres) / 100, np.array(radii) / 100, cameras=3, radius=7.5, height=3.0, units="m")
+    in_m = correspond(metres, model)
+    assert same_partition(base.labels, in_m.labels)
+    assert in_m.units == "m"
+    assert in_m.objects[0].centroid is not None and max(abs(c) for c in in_m.objects[0].centroid) < 3
+    views = list(reversed(cm.views))
+    reordered = correspond(SceneBundle(units="cm", views=views, name="r", ground_truth="instance"), model)
+    key = lambda r: {(s.view, s.instance): s.object for s in r.segments}  # noqa: E731
+    a, b = key(base), key(reordered)
+    assert same_partition([a[k] for k in sorted(a)], [b[k] for k in sorted(a)])
+
+
+def test_ground_truth_never_reaches_the_features():
+    bundle = sphere_scene([[-100, 0, 0], [100, 0, 0]], [50, 50])
+    plain = prepare(bundle)
+    truthless = SceneBundle(units="cm", views=bundle.views, ground_truth="none")
+    other = prepare(truthless)
+    np.testing.assert_array_equal(plain.features, other.features)
+    assert plain.segment_truth is not None and other.segment_truth is None
+
+
+def test_segment_embedding_training_lowers_its_loss():
+    cooc = np.array([[0, 9, 0, 0], [9, 0, 1, 0], [0, 1, 0, 7], [0, 0, 7, 0]], dtype=float)
+    centroids = np.arange(12, dtype=float).reshape(4, 3)
+    cfg = ShadowCorrConfig()
+    z0 = train_segment_embeddings(cooc, centroids, cfg.with_options(segment_embedding_steps=0))
+    z = train_segment_embeddings(cooc, centroids, cfg)
+    assert segment_embedding_loss(z, cooc, cfg) < segment_embedding_loss(z0, cooc, cfg) - 0.1
+    # Listing order does not matter: permuting the segments permutes the vectors.
+    perm = np.array([2, 0, 3, 1])
+    zp = train_segment_embeddings(cooc[np.ix_(perm, perm)], centroids[perm], cfg)
+    np.testing.assert_allclose(zp, z[perm], atol=1e-5)
+
+
+def test_cooccurrence_counts_shared_voxels():
+    voxel = np.array([0, 0, 1, 1, 1, 2])
+    segment = np.array([0, 1, 0, 1, 2, 2])
+    o = cooccurrence(voxel, segment, 3, 3)
+    assert o.tolist() == [[0, 2, 1], [2, 0, 1], [1, 1, 0]]
+
+
+def test_every_segment_is_labelled_even_without_voxels(model):
+    # A harsh consensus filter leaves many segments without a single kept voxel.
+    bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII, cameras=3)
+    config = ShadowCorrConfig(gamma_percentile=97)
+    scene = prepare(bundle, config)
+    orphans = set(range(scene.num_segments)) - set(scene.member_segment.tolist())
+    assert orphans, "the test needs segments without kept voxels"
+    result = correspond(bundle, model, config)
+    assert len(result.segments) == scene.num_segments
+    assert all(s.object >= 0 for s in result.segments)
+    assert {s.segment for s in result.segments if s.assignment != "vote"} == orphans
+    assert result.metrics["coverage"] == 100.0
+    assert any(w.startswith("segment ") and "no surviving voxel" in w for w in result.warnings)
+
+
+def test_baseline_method_runs_without_a_model():
+    bundle = sphere_scene([[-150, 0, 0], [150, 0, 0]], [50, 50])
+    result = correspond(bundle, None, ShadowCorrConfig(method="meanshift"))
+    assert result.method == "meanshift" and result.model is None
+    assert len(result.segments) == 8
+
+
+@pytest.mark.skipif(not (SHARED / "data" / "ue_sample").exists(), reason="shared sample scene not present")
+def test_real_sample_scene_with_reference_checkpoint():
+    from shadowcorr.convert import load_ue_scene
+
+    bundle = load_ue_scene(SHARED / "data" / "ue_sample", 2001, [0, 2, 4, 6])
+    result = correspond(bundle, load_model(REFERENCE))
+    m = result.metrics
+    assert len(result.segments) == 77 and m["num_rocks"] == 20
+    assert m["coverage"] == 100.0
+    assert sum(s.assignment == "unfiltered_voxels" for s in result.segments) >= 1
+    assert m["average_purity"] >= 97.5
+    assert m["voxel_ari"] >= 0.94
