@@ -44,14 +44,21 @@ def unit_scale(from_units: str, to_units: str) -> float:
 
 # --------------------------------------------------------------------------- manifest
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # Unknown keys are typos until proven otherwise; NaN/inf are never valid in a
+    # manifest (intrinsics, scales, poses) and JSON parsers accept them, so refuse here.
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class DepthSpec(_Strict):
     file: str
     format: Literal["exr", "png", "npy"]
-    scale: float = Field(1.0, gt=0, description="units per stored value (16-bit PNG); 1 for exr/npy")
+    scale: float = Field(
+        1.0, gt=0, description="units per stored value; applied to every format, usually != 1 only for 16-bit PNG"
+    )
     kind: Literal["z", "range"] = "z"
+    channel: str | None = Field(
+        None, description="exr only: channel to read; default the first of Z, Y, R, depth, or the only channel"
+    )
 
 
 class MaskSpec(_Strict):
@@ -65,6 +72,18 @@ class MaskSpec(_Strict):
     def _palette_for_rgb(self) -> "MaskSpec":
         if self.format == "png_rgb" and not self.palette:
             raise ValueError("format 'png_rgb' needs a 'palette' of {id: [r, g, b]}")
+        if self.palette:
+            bad_ids = [i for i in self.palette if i < 0 or i > 2**31 - 1]
+            if bad_ids:
+                raise ValueError(f"palette ids must be in 0..2^31-1, got {bad_ids[:5]}")
+            bad = [i for i, rgb in self.palette.items() if any(c < 0 or c > 255 for c in rgb)]
+            if bad:
+                raise ValueError(f"palette colours must be 0..255 per channel (ids {bad[:5]})")
+            seen: dict[tuple[int, int, int], int] = {}
+            for i, rgb in self.palette.items():
+                if tuple(rgb) in seen and seen[tuple(rgb)] != i:
+                    raise ValueError(f"palette colour {list(rgb)} is used by ids {seen[tuple(rgb)]} and {i}")
+                seen[tuple(rgb)] = i
         return self
 
 
@@ -98,7 +117,7 @@ class PoseSpec(_Strict):
 
 
 class ViewSpec(_Strict):
-    name: str
+    name: str = Field(min_length=1, max_length=256)
     pose: PoseSpec
     intrinsics: Intrinsics | None = None
     depth: DepthSpec | None = None

@@ -1,0 +1,51 @@
+"""Reading and writing ShadowCorr inputs: per-view images and whole scene bundles."""
+
+from .bundle_files import (
+    BundleLimits,
+    bundle_to_parts,
+    load_bundle,
+    load_bundle_from_parts,
+    normalize_bundle_path,
+    range_to_z,
+    write_bundle,
+    write_bundle_archive,
+)
+from .images import (
+    DEFAULT_MAX_PIXELS,
+    clean_depth,
+    encode_depth_exr,
+    encode_depth_png16,
+    encode_mask_png,
+    encode_mask_png_rgb,
+    encode_npy,
+    pack_rgb,
+    read_depth,
+    read_exr_channel,
+    read_mask,
+    read_npy,
+    rgb_to_ids,
+)
+
+__all__ = [
+    "BundleLimits",
+    "bundle_to_parts",
+    "load_bundle",
+    "load_bundle_from_parts",
+    "normalize_bundle_path",
+    "range_to_z",
+    "write_bundle",
+    "write_bundle_archive",
+    "DEFAULT_MAX_PIXELS",
+    "clean_depth",
+    "encode_depth_exr",
+    "encode_depth_png16",
+    "encode_mask_png",
+    "encode_mask_png_rgb",
+    "encode_npy",
+    "pack_rgb",
+    "read_depth",
+    "read_exr_channel",
+    "read_mask",
+    "read_npy",
+    "rgb_to_ids",
+]

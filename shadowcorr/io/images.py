@@ -1,0 +1,512 @@
+"""Decode and encode the per-view images of a bundle (depth and instance masks).
+
+Every reader takes the file's *bytes* (the HTTP service holds uploads in memory and a
+bundle archive is read into memory too), validates before it allocates, and raises
+``BundleError`` with a single ``Problem`` located at ``loc`` on any failure:
+
+* the header is read first and the image size is checked against ``max_pixels`` and
+  the expected ``(height, width)`` from the view's intrinsics before any pixel is
+  decoded, so a tiny file that declares a huge image costs nothing;
+* PNG goes through Pillow restricted to the PNG decoder, with
+  ``Image.MAX_IMAGE_PIXELS`` set to our limit as a second line of defence;
+* ``.npy`` is read with ``allow_pickle=False`` always, after the header has been
+  parsed and object dtypes refused (an object array is a pickle: code execution);
+* EXR goes through the ``OpenEXR`` package, header first.
+
+Depth conventions: the returned depth is float32 ``stored value * scale``; invalid
+pixels (non-finite or <= 0) are set to 0, which is what ``View.depth`` means by invalid.
+Masks are returned as int32 instance ids, 0 = background.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import OpenEXR
+from PIL import Image
+
+from ..errors import BundleError
+
+__all__ = [
+    "DEFAULT_MAX_PIXELS",
+    "read_exr_channel",
+    "read_depth",
+    "read_depth_exr",
+    "read_depth_png",
+    "read_depth_npy",
+    "read_mask",
+    "read_mask_png",
+    "read_mask_png_rgb",
+    "read_mask_npy",
+    "read_npy",
+    "rgb_to_ids",
+    "pack_rgb",
+    "png_size",
+    "clean_depth",
+    "encode_depth_exr",
+    "encode_depth_png16",
+    "encode_mask_png",
+    "encode_mask_png_rgb",
+    "encode_npy",
+]
+
+DEFAULT_MAX_PIXELS = 4096 * 4096
+
+# Pillow's own bomb guard: warn above the limit, raise above twice it.  We check the
+# header size ourselves first, so this only matters if that check is ever bypassed.
+# Set once at import; a caller with a bigger limit raises it (see _allow_pixels).
+Image.MAX_IMAGE_PIXELS = DEFAULT_MAX_PIXELS
+
+_INT32_MAX = 2**31 - 1
+_EXR_DEPTH_CHANNELS = ("Z", "Y", "R", "depth", "Depth", "z", "distance", "G", "B")
+
+
+def _fail(loc: str, msg: str) -> BundleError:
+    return BundleError(msg, loc=loc)
+
+
+def _allow_pixels(max_pixels: int) -> None:
+    # Only ever raise the global: lowering it would break a concurrent caller that
+    # legitimately asked for a larger limit.
+    cur = Image.MAX_IMAGE_PIXELS
+    if cur is not None and cur < max_pixels:
+        Image.MAX_IMAGE_PIXELS = max_pixels
+
+
+def _check_size(width: int, height: int, *, shape: tuple[int, int] | None, max_pixels: int, loc: str) -> None:
+    """Refuse a declared image size before decoding it."""
+    if width <= 0 or height <= 0:
+        raise _fail(loc, f"image has an empty size {width}x{height}")
+    if width * height > max_pixels:
+        raise _fail(loc, f"image is {width}x{height} = {width * height} pixels, more than the limit of {max_pixels}")
+    if shape is not None and (height, width) != tuple(shape):
+        raise _fail(
+            loc,
+            f"image is {width}x{height} (width x height) but the view's intrinsics say {shape[1]}x{shape[0]}",
+        )
+
+
+# --------------------------------------------------------------------------- EXR
+def read_exr_channel(
+    data: bytes,
+    *,
+    channel: str | None = None,
+    shape: tuple[int, int] | None = None,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    loc: str = "",
+) -> np.ndarray:
+    """One channel of an EXR image as float32, values exactly as stored (half -> float32 is exact).
+
+    Accepts half or float pixels, RGBA (R = G = B = depth, as the Unreal exporter writes)
+    or single-channel files (``Z``, ``Y``, ``R``, ...).  ``channel`` picks one by name;
+    otherwise the first present of Z, Y, R, depth, ... or the only channel is used.
+    """
+    if not data.startswith(b"\x76\x2f\x31\x01"):  # EXR magic; cheaper and quieter than letting the C++ side fail
+        raise _fail(loc, "not an OpenEXR file (bad magic number)")
+    try:
+        head = OpenEXR.File(io.BytesIO(data), header_only=True)
+        header = head.header() if head.parts else None
+    except Exception as e:  # the binding raises RuntimeError / ValueError / others for corrupt input
+        raise _fail(loc, f"cannot read EXR header: {e}") from None
+    if not header or "dataWindow" not in header:
+        raise _fail(loc, "cannot read EXR header")
+    lo, hi = header["dataWindow"]
+    width, height = int(hi[0]) - int(lo[0]) + 1, int(hi[1]) - int(lo[1]) + 1
+    _check_size(width, height, shape=shape, max_pixels=max_pixels, loc=loc)
+    kind = header.get("type")
+    if kind is not None and kind not in (OpenEXR.scanlineimage, OpenEXR.tiledimage):
+        raise _fail(loc, f"EXR storage type {kind} is not supported (deep images are not depth maps)")
+    try:
+        f = OpenEXR.File(io.BytesIO(data), separate_channels=True)
+        # A truncated file makes the binding print a warning and return a file with no parts.
+        chans = f.channels() if f.parts else None
+    except Exception as e:
+        raise _fail(loc, f"cannot decode EXR pixels: {e}") from None
+    if not chans:
+        raise _fail(loc, "cannot decode EXR pixels (file truncated or corrupt)")
+    if channel is not None:
+        if channel not in chans:
+            raise _fail(loc, f"EXR has no channel {channel!r} (channels: {sorted(chans)})")
+        name = channel
+    elif len(chans) == 1:
+        name = next(iter(chans))
+    else:
+        name = next((c for c in _EXR_DEPTH_CHANNELS if c in chans), None)
+        if name is None:
+            raise _fail(loc, f"EXR has several channels {sorted(chans)} and none looks like depth; set depth.channel")
+    ch = chans[name]
+    if getattr(ch, "xSampling", 1) != 1 or getattr(ch, "ySampling", 1) != 1:
+        raise _fail(loc, f"EXR channel {name!r} is subsampled; only full-resolution depth is supported")
+    px = ch.pixels
+    if not isinstance(px, np.ndarray) or px.dtype not in (np.float16, np.float32):
+        raise _fail(loc, f"EXR channel {name!r} must hold half or float pixels, got {getattr(px, 'dtype', type(px))}")
+    if px.shape != (height, width):
+        raise _fail(loc, f"EXR channel {name!r} has shape {px.shape}, expected {(height, width)}")
+    return px.astype(np.float32, copy=False)
+
+
+# --------------------------------------------------------------------------- PNG
+def _open_png(data: bytes, *, shape: tuple[int, int] | None, max_pixels: int, loc: str) -> Image.Image:
+    """Open a PNG, check its declared size, then decode it fully (errors become problems)."""
+    try:
+        w0, h0 = png_size(data)
+    except ValueError:
+        raise _fail(loc, "not a PNG file (bad signature or no IHDR header)") from None
+    # Refuse on the declared size before Pillow sees the data at all.
+    _check_size(w0, h0, shape=shape, max_pixels=max_pixels, loc=loc)
+    _allow_pixels(max_pixels)
+    try:
+        im = Image.open(io.BytesIO(data), formats=["PNG"])  # lazy: reads the header only
+    except Image.DecompressionBombError as e:
+        raise _fail(loc, f"PNG refused as a decompression bomb: {e}") from None
+    except Exception as e:
+        raise _fail(loc, f"cannot read PNG header: {e}") from None
+    width, height = im.size
+    _check_size(width, height, shape=shape, max_pixels=max_pixels, loc=loc)
+    try:
+        im.load()
+    except Image.DecompressionBombError as e:
+        raise _fail(loc, f"PNG refused as a decompression bomb: {e}") from None
+    except Exception as e:  # truncated data, bad CRC, bad zlib stream ...
+        raise _fail(loc, f"cannot decode PNG: {e}") from None
+    return im
+
+
+def png_size(data: bytes) -> tuple[int, int]:
+    """(width, height) from a PNG's IHDR chunk without decoding anything; ValueError if not a PNG."""
+    if len(data) < 24 or not data.startswith(b"\x89PNG\r\n\x1a\n") or data[12:16] != b"IHDR":
+        raise ValueError("not a PNG file")
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def _png_gray_array(im: Image.Image, *, what: str, loc: str) -> np.ndarray:
+    """Single-channel integer PNG pixels as a native-endian array."""
+    if im.mode in ("1", "L", "P"):
+        arr = np.asarray(im if im.mode != "1" else im.convert("L"))
+    elif im.mode in ("I;16", "I;16B", "I;16L", "I"):
+        arr = np.asarray(im)
+    else:
+        raise _fail(loc, f"{what} PNG must be single-channel 8/16-bit, got mode {im.mode!r}" + (
+            "; a colour-coded mask needs format 'png_rgb' with a palette" if im.mode in ("RGB", "RGBA") and what == "mask" else ""
+        ))
+    return arr.astype(arr.dtype.newbyteorder("="), copy=False)
+
+
+def read_depth_png(
+    data: bytes,
+    *,
+    scale: float = 1.0,
+    shape: tuple[int, int] | None = None,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    loc: str = "",
+) -> np.ndarray:
+    """16-bit (or 8-bit) single-channel PNG depth -> float32 ``value * scale``; 0 stays invalid."""
+    im = _open_png(data, shape=shape, max_pixels=max_pixels, loc=loc)
+    if im.mode == "P":
+        raise _fail(loc, "depth PNG must be greyscale, got a palette image")
+    arr = _png_gray_array(im, what="depth", loc=loc)
+    return clean_depth(arr.astype(np.float32) * np.float32(scale), inplace=True)
+
+
+# --------------------------------------------------------------------------- NPY
+def read_npy(data: bytes, *, max_elements: int | None = None, loc: str = "") -> np.ndarray:
+    """Parse a ``.npy`` safely: header first, no object dtypes, ``allow_pickle=False``."""
+    f = io.BytesIO(data)
+    try:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"unsupported .npy format version {version}")
+    except Exception as e:
+        raise _fail(loc, f"not a valid .npy file: {e}") from None
+    if dtype.hasobject:
+        raise _fail(loc, ".npy holds an object array; refused (loading it would unpickle arbitrary code)")
+    n = math.prod(int(s) for s in shape)
+    if max_elements is not None and n > max_elements:
+        raise _fail(loc, f".npy array has {n} elements, more than the limit of {max_elements}")
+    if n * dtype.itemsize > len(data) - f.tell():
+        raise _fail(loc, f".npy is truncated: header declares shape {tuple(shape)} {dtype} but the data is shorter")
+    try:
+        arr = np.load(io.BytesIO(data), allow_pickle=False)
+    except Exception as e:
+        raise _fail(loc, f"cannot read .npy: {e}") from None
+    if not isinstance(arr, np.ndarray):
+        raise _fail(loc, "expected a .npy array")
+    return arr
+
+
+def _image_from_npy(
+    data: bytes, *, what: str, shape: tuple[int, int] | None, max_pixels: int, loc: str
+) -> np.ndarray:
+    arr = read_npy(data, max_elements=max_pixels, loc=loc)
+    if arr.ndim == 3 and arr.shape[2] == 1:  # (H, W, 1) is a common way to save one channel
+        arr = arr[:, :, 0]
+    if arr.ndim != 2:
+        raise _fail(loc, f"{what} .npy must be a 2-D (height, width) array, got shape {arr.shape}")
+    _check_size(arr.shape[1], arr.shape[0], shape=shape, max_pixels=max_pixels, loc=loc)
+    return arr
+
+
+def read_depth_npy(
+    data: bytes,
+    *,
+    scale: float = 1.0,
+    shape: tuple[int, int] | None = None,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    loc: str = "",
+) -> np.ndarray:
+    """2-D numeric ``.npy`` depth -> float32 ``value * scale`` with invalid pixels set to 0."""
+    arr = _image_from_npy(data, what="depth", shape=shape, max_pixels=max_pixels, loc=loc)
+    if arr.dtype.kind not in "fiu":
+        raise _fail(loc, f"depth .npy must be a float or integer array, got dtype {arr.dtype}")
+    return clean_depth(arr.astype(np.float32) * np.float32(scale), inplace=True)
+
+
+def read_depth_exr(
+    data: bytes,
+    *,
+    scale: float = 1.0,
+    channel: str | None = None,
+    shape: tuple[int, int] | None = None,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    loc: str = "",
+) -> np.ndarray:
+    """EXR depth (see ``read_exr_channel``) -> float32 ``value * scale``, invalid pixels set to 0."""
+    arr = read_exr_channel(data, channel=channel, shape=shape, max_pixels=max_pixels, loc=loc)
+    return clean_depth(arr * np.float32(scale) if scale != 1.0 else arr, inplace=True)
+
+
+def clean_depth(depth: np.ndarray, *, inplace: bool = False) -> np.ndarray:
+    """float32 ``depth`` with non-finite and <= 0 values set to 0 (= invalid).
+
+    Non-finite values must never reach the geometry (a single inf breaks every
+    bounding box downstream), so they are folded into the one "invalid" value.
+    The input is modified only with ``inplace=True`` (readers own their fresh arrays).
+    """
+    d = np.asarray(depth, dtype=np.float32)
+    bad = ~(d > 0) | ~np.isfinite(d)  # ~(d > 0) also catches NaN
+    if bad.any():
+        if not d.flags.writeable or (d is depth and not inplace):
+            d = d.copy()
+        d[bad] = 0.0
+    return d
+
+
+def read_depth(
+    data: bytes,
+    fmt: str,
+    *,
+    scale: float = 1.0,
+    channel: str | None = None,
+    shape: tuple[int, int] | None = None,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    loc: str = "",
+) -> np.ndarray:
+    """Dispatch on the manifest's depth ``format`` (``exr``, ``png``, ``npy``)."""
+    if fmt == "exr":
+        return read_depth_exr(data, scale=scale, channel=channel, shape=shape, max_pixels=max_pixels, loc=loc)
+    if fmt == "png":
+        return read_depth_png(data, scale=scale, shape=shape, max_pixels=max_pixels, loc=loc)
+    if fmt == "npy":
+        return read_depth_npy(data, scale=scale, shape=shape, max_pixels=max_pixels, loc=loc)
+    raise _fail(loc, f"unknown depth format {fmt!r}")
+
+
+# --------------------------------------------------------------------------- masks
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """(..., 3) uint8-range colours -> int32 keys ``r << 16 | g << 8 | b``."""
+    rgb = np.asarray(rgb)
+    k = rgb[..., 0].astype(np.int32)  # in-place shifts/ors: one allocation for a full image
+    k <<= 8
+    k |= rgb[..., 1]
+    k <<= 8
+    k |= rgb[..., 2]
+    return k
+
+
+def rgb_to_ids(rgb: np.ndarray, palette: Mapping[int, Sequence[int]]) -> tuple[np.ndarray, int]:
+    """Colour-coded mask (H, W, 3) -> (int32 ids (H, W), number of pixels with unknown colours).
+
+    Vectorised: colours are packed into int32 keys and looked up with ``searchsorted``
+    in the sorted palette keys -- only for non-black pixels, since instance masks are
+    mostly background and black is background unless the palette says otherwise.
+    Colours not in the palette become background (0) and are counted.
+    """
+    keys = pack_rgb(rgb)
+    ids = np.zeros(keys.shape, np.int32)
+    pal = {int(i): tuple(int(c) for c in rgb_) for i, rgb_ in palette.items()}
+    black_id = next((i for i, c in pal.items() if c == (0, 0, 0)), 0)
+    flat_keys, flat_ids = keys.ravel(), ids.ravel()  # views of contiguous arrays
+    if black_id:
+        flat_ids[flat_keys == 0] = black_id
+    sel = np.flatnonzero(flat_keys)
+    coloured = {i: c for i, c in pal.items() if c != (0, 0, 0)}
+    if not coloured:
+        return ids, int(sel.size)
+    pal_ids = np.fromiter(coloured.keys(), dtype=np.int64, count=len(coloured))
+    pal_keys = pack_rgb(np.array(list(coloured.values()), dtype=np.int64))
+    order = np.argsort(pal_keys, kind="stable")
+    pal_keys, pal_ids = pal_keys[order], pal_ids[order]
+    k = flat_keys[sel]
+    pos = np.searchsorted(pal_keys, k)
+    np.minimum(pos, len(pal_keys) - 1, out=pos)
+    hit = pal_keys[pos] == k
+    flat_ids[sel[hit]] = pal_ids[pos[hit]]
+    return ids, int(sel.size - np.count_nonzero(hit))
+
+
+def _check_ids(arr: np.ndarray, loc: str) -> np.ndarray:
+    """Integer ids -> int32, refusing negatives and values that do not fit."""
+    if arr.dtype.kind == "b":
+        return arr.astype(np.int32)
+    if arr.dtype.kind not in "iu":
+        raise _fail(loc, f"mask must hold integer instance ids, got dtype {arr.dtype}")
+    if arr.size:
+        lo, hi = int(arr.min()), int(arr.max())
+        if lo < 0:
+            raise _fail(loc, f"mask has negative instance ids (min {lo}); 0 is background, ids are >= 1")
+        if hi > _INT32_MAX:
+            raise _fail(loc, f"mask instance id {hi} does not fit in int32")
+    return arr.astype(np.int32, copy=False)
+
+
+def read_mask_png(
+    data: bytes, *, shape: tuple[int, int] | None = None, max_pixels: int = DEFAULT_MAX_PIXELS, loc: str = ""
+) -> np.ndarray:
+    """Single-channel 8/16-bit PNG of instance ids (0 = background) -> int32.
+
+    A palette-mode ("P") PNG is read as its indices, as label-map tools (e.g. PASCAL
+    VOC style) store ids; colour-coded RGB masks need ``read_mask_png_rgb``.
+    """
+    im = _open_png(data, shape=shape, max_pixels=max_pixels, loc=loc)
+    return _check_ids(_png_gray_array(im, what="mask", loc=loc), loc)
+
+
+def read_mask_png_rgb(
+    data: bytes,
+    palette: Mapping[int, Sequence[int]] | None,
+    *,
+    shape: tuple[int, int] | None = None,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    loc: str = "",
+    warnings: list[str] | None = None,
+) -> np.ndarray:
+    """Colour-coded PNG + ``palette`` {id: (r, g, b)} -> int32 ids; unknown colours -> 0 with a warning."""
+    if not palette:
+        raise _fail(loc, "a colour-coded (png_rgb) mask needs a palette of {id: [r, g, b]}")
+    im = _open_png(data, shape=shape, max_pixels=max_pixels, loc=loc)
+    if im.mode in ("I;16", "I;16B", "I;16L", "I", "F"):
+        raise _fail(loc, f"png_rgb mask must be an 8-bit colour image, got mode {im.mode!r}")
+    if im.mode != "RGB":
+        im = im.convert("RGB")  # RGBA (alpha ignored), P, L: colours are what the palette names
+    ids, unknown = rgb_to_ids(np.asarray(im), palette)
+    if unknown and warnings is not None:
+        warnings.append(
+            f"{loc or 'mask'}: {unknown} pixels have colours not in the palette; treated as background"
+        )
+    return ids
+
+
+def read_mask_npy(
+    data: bytes, *, shape: tuple[int, int] | None = None, max_pixels: int = DEFAULT_MAX_PIXELS, loc: str = ""
+) -> np.ndarray:
+    """2-D integer (or bool) ``.npy`` of instance ids -> int32."""
+    arr = _image_from_npy(data, what="mask", shape=shape, max_pixels=max_pixels, loc=loc)
+    return _check_ids(arr, loc)
+
+
+def read_mask(
+    data: bytes,
+    fmt: str,
+    *,
+    palette: Mapping[int, Sequence[int]] | None = None,
+    shape: tuple[int, int] | None = None,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    loc: str = "",
+    warnings: list[str] | None = None,
+) -> np.ndarray:
+    """Dispatch on the manifest's mask ``format`` (``png``, ``png_rgb``, ``npy``)."""
+    if fmt == "png":
+        return read_mask_png(data, shape=shape, max_pixels=max_pixels, loc=loc)
+    if fmt == "png_rgb":
+        return read_mask_png_rgb(data, palette, shape=shape, max_pixels=max_pixels, loc=loc, warnings=warnings)
+    if fmt == "npy":
+        return read_mask_npy(data, shape=shape, max_pixels=max_pixels, loc=loc)
+    raise _fail(loc, f"unknown mask format {fmt!r}")
+
+
+# --------------------------------------------------------------------------- writers
+def encode_depth_exr(depth: np.ndarray, *, half: bool = False, channel: str = "Z") -> bytes:
+    """Single-channel ZIP-compressed EXR; float32 by default so every value survives exactly."""
+    arr = np.ascontiguousarray(depth, dtype=np.float16 if half else np.float32)
+    if arr.ndim != 2:
+        raise ValueError(f"depth must be 2-D, got shape {arr.shape}")
+    f = OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {channel: arr})
+    buf = io.BytesIO()
+    f.write(buf)
+    return buf.getvalue()
+
+
+def encode_depth_png16(depth: np.ndarray, scale: float) -> bytes:
+    """16-bit PNG storing ``round(depth / scale)``; invalid depth -> 0.
+
+    Lossy by design (quantised to ``scale``).  A valid depth that would round to 0 is
+    stored as 1 so it does not silently turn invalid; a depth above ``65535 * scale``
+    raises, because clipping would move the surface.
+    """
+    if not scale > 0:
+        raise ValueError("scale must be > 0")
+    d = np.asarray(depth, dtype=np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"depth must be 2-D, got shape {d.shape}")
+    valid = np.isfinite(d) & (d > 0)
+    q = np.zeros(d.shape, dtype=np.float64)
+    q[valid] = np.maximum(np.rint(d[valid] / scale), 1.0)
+    if q.max(initial=0) > 65535:
+        raise ValueError(f"depth {d[valid].max():g} does not fit a 16-bit PNG at scale {scale:g}; use a larger scale")
+    buf = io.BytesIO()
+    Image.fromarray(q.astype(np.uint16)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def encode_mask_png(mask: np.ndarray) -> bytes:
+    """Instance ids as a single-channel PNG: 8-bit when ids <= 255, else 16-bit."""
+    m = np.asarray(mask)
+    if m.ndim != 2:
+        raise ValueError(f"mask must be 2-D, got shape {m.shape}")
+    lo, hi = (int(m.min()), int(m.max())) if m.size else (0, 0)
+    if lo < 0 or hi > 65535:
+        raise ValueError(f"mask ids {lo}..{hi} do not fit a 16-bit PNG; use mask_format='npy'")
+    buf = io.BytesIO()
+    Image.fromarray(m.astype(np.uint8 if hi <= 255 else np.uint16)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def encode_mask_png_rgb(mask: np.ndarray, palette: Mapping[int, Sequence[int]]) -> bytes:
+    """Instance ids -> colour-coded RGB PNG; ids missing from ``palette`` raise."""
+    m = np.asarray(mask)
+    ids = np.array(sorted(palette), dtype=np.int64)
+    present = np.unique(m)
+    missing = np.setdiff1d(present, ids)
+    missing = missing[missing != 0]
+    if missing.size:
+        raise ValueError(f"mask ids {missing[:10].tolist()} have no palette colour")
+    lut_ids = np.union1d(ids, [0])
+    colours = np.array([tuple(palette.get(int(i), (0, 0, 0))) for i in lut_ids], dtype=np.uint8)
+    rgb = colours[np.searchsorted(lut_ids, m)]
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def encode_npy(arr: np.ndarray) -> bytes:
+    """``.npy`` bytes (never pickled: object arrays raise)."""
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(arr), allow_pickle=False)
+    return buf.getvalue()
