@@ -15,8 +15,9 @@ from shadowcorr.shadows import beta_profile, cast_shadows, segment_shells, voxel
 
 from .scenes import sphere_scene
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
-REFERENCE = SHARED / "reference" / "shadowcorr_best.pth"
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "examples" / "ue_sample"
+REFERENCE = ROOT.parent / "shared" / "reference" / "shadowcorr_best.pth"
 
 
 @pytest.fixture(scope="module")
@@ -180,11 +181,11 @@ def test_baseline_method_runs_without_a_model():
     assert len(result.segments) == 8
 
 
-@pytest.mark.skipif(not (SHARED / "data" / "ue_sample").exists(), reason="shared sample scene not present")
+@pytest.mark.skipif(not REFERENCE.exists(), reason="reference checkpoint (../shared) not present")
 def test_real_sample_scene_with_reference_checkpoint():
     from shadowcorr.convert import load_ue_scene
 
-    bundle = load_ue_scene(SHARED / "data" / "ue_sample", 2001, [0, 2, 4, 6])
+    bundle = load_ue_scene(SAMPLE, 2001, [0, 2, 4, 6])
     result = correspond(bundle, load_model(REFERENCE))
     m = result.metrics
     assert len(result.segments) == 77 and m["num_rocks"] == 20

@@ -1,0 +1,77 @@
+"""Per-stage timings of the engine on the real sample scene (median of repeated runs).
+
+    python benchmarks/bench_engine.py [--repeats 7] [--cameras 0,2,4,6] [--model PATH]
+
+Prints milliseconds per stage for two paths:
+  in memory: decoded SceneBundle -> labels (prepare, network, clustering, assign)
+  on disk:   bundle directory -> labels (load_bundle + the above)
+Targets on a 2-core machine: <= 300 ms and <= 600 ms per scene.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from shadowcorr import correspond, load_bundle, load_model
+from shadowcorr.convert import convert_ue, load_ue_scene
+
+SAMPLE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ue_sample"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--cameras", default="0,2,4,6")
+    parser.add_argument("--model", default=None, help="default: the packaged model")
+    parser.add_argument("--data", default=str(SAMPLE))
+    parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    cameras = [int(c) for c in args.cameras.split(",")]
+    model = load_model(args.model)
+
+    bundle = load_ue_scene(args.data, 2001, cameras)
+    correspond(bundle, model)  # warm-up: first-call allocations and lazy imports
+    stages: dict[str, list[float]] = {}
+    totals = []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        result = correspond(bundle, model)
+        totals.append((time.perf_counter() - t0) * 1e3)
+        for k, v in result.timings_ms.items():
+            stages.setdefault(k, []).append(v)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = convert_ue(args.data, 2001, cameras, Path(tmp) / "bundle")
+        disk, loads = [], []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            loaded = load_bundle(path)
+            t1 = time.perf_counter()
+            correspond(loaded, model)
+            disk.append((time.perf_counter() - t0) * 1e3)
+            loads.append((t1 - t0) * 1e3)
+
+    m = result.metrics or {}
+    print(f"scene Set2001 cameras {args.cameras}: {len(result.segments)} segments, "
+          f"{sum(o.num_voxels for o in result.objects)} voxels, model {model.name}, torch threads {args.threads}")
+    print(f"average purity {m.get('average_purity', float('nan')):.2f}, voxel ARI {m.get('voxel_ari', float('nan')):.4f}")
+    print(f"{'stage':<20}{'median ms':>12}")
+    for k, v in stages.items():
+        if k != "total":
+            print(f"{k:<20}{statistics.median(v):>12.1f}")
+    print(f"{'in memory -> labels':<20}{statistics.median(totals):>12.1f}   (target <= 300)")
+    print(f"{'load_bundle':<20}{statistics.median(loads):>12.1f}")
+    print(f"{'on disk -> labels':<20}{statistics.median(disk):>12.1f}   (target <= 600)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
