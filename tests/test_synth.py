@@ -22,7 +22,10 @@ from scipy.spatial import ConvexHull, cKDTree
 
 # Headless GL must be chosen before mujoco's first import (shadowcorr.synth does the
 # same when it imports mujoco itself; here importorskip comes first).
-os.environ.setdefault("MUJOCO_GL", "egl")
+from shadowcorr.synth.physics import headless_gl_platform  # noqa: E402  (does not import mujoco)
+
+if not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", headless_gl_platform())
 pytest.importorskip("mujoco")
 
 from shadowcorr.io import load_bundle, write_bundle  # noqa: E402

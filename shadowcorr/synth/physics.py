@@ -38,12 +38,25 @@ VISUAL_GROUP = 0  # rendered geoms (rocks, visible ground)
 COLLISION_GROUP = 3  # physics-only ground, never rendered or ray cast
 
 
+def headless_gl_platform() -> str:
+    """``egl`` when Mesa's EGL is installed, else ``osmesa`` when OSMesa is, else ``egl``
+    (rendering then falls back to the numpy rasteriser).  Only file look-ups: the real
+    test is ``render.gl_available``."""
+    import ctypes.util
+
+    if ctypes.util.find_library("EGL") and ctypes.util.find_library("EGL_mesa"):
+        return "egl"
+    if ctypes.util.find_library("OSMesa"):
+        return "osmesa"
+    return "egl"
+
+
 def import_mujoco() -> Any:
     """Import MuJoCo or fail with the install hint (``pip install shadowcorr[synth]``)."""
     # The GL platform must be chosen before mujoco is first imported (rendering uses
-    # the same module); headless EGL unless the user picked one.
+    # the same module).
     if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
-        os.environ["MUJOCO_GL"] = "egl"
+        os.environ["MUJOCO_GL"] = headless_gl_platform()
     try:
         import mujoco
     except ImportError as e:  # pragma: no cover - depends on the environment

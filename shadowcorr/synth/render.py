@@ -6,11 +6,14 @@ rock k, depth 0 where no geometry is hit):
 
 * ``"gl"``: MuJoCo's offscreen OpenGL renderer (depth buffer + segmentation pass).
   Needs a headless GL: ``MUJOCO_GL=egl`` with Mesa's EGL + llvmpipe (Debian:
-  ``libegl1 libegl-mesa0 libgl1-mesa-dri``) or ``MUJOCO_GL=osmesa`` (``libosmesa6``).
+  ``libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0``) or ``MUJOCO_GL=osmesa``
+  (``libosmesa6``).  ``physics.headless_gl_platform`` picks whichever is installed.
 * ``"raster"``: a vectorised numpy z-buffer rasteriser, no system packages needed.
-  Slower (about 2–4x at 1080p here) but exact and always available.
+  Measured on a busy 2-core machine, 4 views at 1920x1080: EGL 1.2–2.1 s, raster
+  1.7–3.1 s, OSMesa 2.7–3.4 s.  The two backends agree to ~1e-4 units in depth and
+  >99.99 % of mask pixels (tested).
 
-``"auto"`` uses GL when a context can be created and the raster backend otherwise.
+``"auto"`` uses GL when it can render here and the raster backend otherwise.
 """
 
 from __future__ import annotations
