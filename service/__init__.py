@@ -1,0 +1,25 @@
+"""ShadowCorr HTTP inference service (FastAPI + uvicorn).
+
+``create_app(settings)`` builds the ASGI app; ``serve(settings)`` runs it under uvicorn;
+``service.cli`` provides ``shadowcorr serve``.  Settings come from ``SHADOWCORR_*``
+environment variables (``ServiceSettings``).  Heavy modules (torch, the engine) are
+imported only when an app is created, so ``import service`` stays cheap.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from .server import serve
+from .settings import ServiceSettings
+
+if TYPE_CHECKING:  # pragma: no cover
+    from fastapi import FastAPI
+
+__all__ = ["ServiceSettings", "create_app", "serve"]
+
+
+def create_app(settings: ServiceSettings | None = None) -> "FastAPI":
+    from .app import create_app as _create_app
+
+    return _create_app(settings)

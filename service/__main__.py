@@ -1,0 +1,10 @@
+"""``python -m service [flags]``: run the HTTP service (see ``service.cli``)."""
+
+# Guarded: spawned worker processes import the main module as "__mp_main__", and must not
+# start a second server.
+if __name__ == "__main__":
+    import sys
+
+    from service.cli import main
+
+    sys.exit(main())

@@ -1,0 +1,198 @@
+"""The functions worker processes run: decode + prepare, assign, the baseline, warm-up.
+
+Everything here executes in a *spawned* worker process (see ``workers.py``), so these
+are module-level functions of plain picklable arguments.  Input errors leave as
+:class:`~service.errors.JobError` (status, code, message, problems), which survives
+pickling intact; anything unexpected is logged here, with its traceback, and becomes
+a 500 without internals.
+
+Uploaded bytes are only ever *parsed* (multipart, zip/tar, PNG, EXR, npy without
+pickle): nothing that came from a client is unpickled.  The only pickles crossing the
+process boundary are the service's own objects (``VoxelScene``, arrays, results).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from shadowcorr.config import ShadowCorrConfig
+from shadowcorr.errors import BundleError
+from shadowcorr.io import load_bundle, load_bundle_from_parts
+from shadowcorr.pipeline import assign, baseline_embeddings, prepare
+from shadowcorr.result import ModelInfo
+from shadowcorr.voxel_scene import VoxelScene
+
+from .errors import JobError
+from .limits import RequestLimits, check_instances, check_segment_count
+from .multipart import BodyError, parse_body
+from .synthetic import synthetic_bundle
+
+__all__ = [
+    "Prepared",
+    "init_worker",
+    "hello",
+    "decode_and_prepare",
+    "assign_scene",
+    "baseline",
+    "warmup_scene",
+]
+
+log = logging.getLogger("shadowcorr.service.worker")
+
+
+@dataclass
+class Prepared:
+    """What ``decode_and_prepare`` sends back to the main process."""
+
+    scene: VoxelScene
+    decode_ms: float
+    prepare_ms: float
+
+
+# --------------------------------------------------------------------------- process setup
+def init_worker(torch_threads: int, parent_pid: int, warm_up: bool = True) -> None:
+    """Initializer of every worker process: threads, signals, orphan guard, warm-up.
+
+    * torch and BLAS get ``torch_threads`` threads: the pool already runs one scene per
+      core, so more threads per worker only oversubscribe the CPU.
+    * SIGINT is ignored: Ctrl-C in a terminal reaches the whole process group, and the
+      main process must stay in charge of draining in-flight work.
+    * a daemon thread exits the worker if the main process disappears (SIGKILL), so no
+      orphan keeps memory or CPU.
+    * one ``prepare`` + ``assign`` of a small synthetic scene: the first call of each
+      stage pays for lazy imports and caches; warmed workers answer the first request
+      as fast as the next.
+    """
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s worker[%(process)d] %(levelname)s %(message)s")
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    import torch
+
+    torch.set_num_threads(torch_threads)
+    try:  # numpy's BLAS pool too (threadpoolctl ships with scikit-learn)
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(torch_threads)
+    except Exception:  # pragma: no cover - optional
+        pass
+
+    def _watch_parent() -> None:
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(0)
+            time.sleep(1.0)
+
+    threading.Thread(target=_watch_parent, name="parent-watch", daemon=True).start()
+    if warm_up:
+        scene = prepare(synthetic_bundle(name="warmup"))
+        assign(scene, baseline_embeddings(scene))
+
+
+def hello() -> int:
+    """First job of every worker: returns its pid once the initializer (warm-up) is done."""
+    return os.getpid()
+
+
+# --------------------------------------------------------------------------- jobs
+def _load(body: bytes, content_type: str, limits: RequestLimits):
+    try:
+        parsed = parse_body(body, content_type, max_files=limits.bundle.max_files)
+    except BodyError as e:
+        code = "unsupported_media_type" if e.status == 415 else "bad_multipart"
+        raise JobError(e.status, code, str(e), [{"loc": e.loc, "msg": str(e)}]) from None
+    try:
+        if parsed.archive is not None:
+            return load_bundle(parsed.archive, limits=limits.bundle)
+        return load_bundle_from_parts(parsed.manifest, parsed.files, limits=limits.bundle)
+    except BundleError as e:
+        raise JobError(422, "invalid_bundle", str(e), e.to_dicts()) from None
+
+
+def _guarded(what: str, fn, *args):
+    """Run ``fn``: input errors pass through, the rest is logged and becomes a clean JobError.
+
+    The public job functions below call this instead of being decorated, so that pickle
+    (which finds functions by qualified name) sends the guarded function to the worker.
+    """
+    try:
+        return fn(*args)
+    except JobError:
+        raise
+    except MemoryError:
+        raise JobError(413, "too_large", f"{what}: the scene needs more memory than this service has") from None
+    except ValueError as e:  # the engine's way of saying "this input cannot be processed"
+        raise JobError(422, "unprocessable_scene", f"{what}: {e}", [{"loc": "scene", "msg": str(e)}]) from None
+    except Exception as e:
+        log.exception("%s failed", what)
+        raise JobError(500, "internal_error", f"{what} failed ({type(e).__name__}); see the server log") from None
+
+
+def _decode_and_prepare(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits) -> Prepared:
+    t0 = time.perf_counter()
+    bundle = _load(body, content_type, limits)
+    del body
+    check_instances(bundle, limits.max_segments, config.min_blob_pixels)
+    t1 = time.perf_counter()
+    scene = prepare(bundle, config)
+    check_segment_count(scene.num_segments, limits.max_segments)
+    t2 = time.perf_counter()
+    return Prepared(scene=scene, decode_ms=(t1 - t0) * 1e3, prepare_ms=(t2 - t1) * 1e3)
+
+
+def _assign_scene(
+    scene: VoxelScene,
+    embeddings: np.ndarray,
+    config: ShadowCorrConfig,
+    model: ModelInfo | None,
+    metrics: bool,
+    extra_timings: dict[str, float],
+) -> bytes:
+    result = assign(scene, embeddings, config, model=model, metrics=metrics)
+    result.timings_ms.update({k: round(v, 3) for k, v in extra_timings.items()})
+    return result.model_dump_json().encode()
+
+
+def _baseline(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool) -> bytes:
+    """The paper's MeanShift baseline: no network, so no batcher; one job does it all."""
+    prepared = _decode_and_prepare(body, content_type, config, limits)
+    return _assign_scene(prepared.scene, baseline_embeddings(prepared.scene), config, None, metrics,
+                         {"decode": prepared.decode_ms})
+
+
+def _warmup_scene() -> VoxelScene:
+    """A prepared synthetic scene, for the network's warm-up forward pass in the main process."""
+    return prepare(synthetic_bundle(name="warmup"))
+
+
+def decode_and_prepare(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits) -> Prepared:
+    """Parse the upload, load and check the bundle, run ``prepare``."""
+    return _guarded("decoding and preparing the scene", _decode_and_prepare, body, content_type, config, limits)
+
+
+def assign_scene(
+    scene: VoxelScene,
+    embeddings: np.ndarray,
+    config: ShadowCorrConfig,
+    model: ModelInfo | None,
+    metrics: bool,
+    extra_timings: dict[str, float],
+) -> bytes:
+    """Cluster the embeddings and label the segments; returns the Result JSON bytes."""
+    return _guarded("assigning objects", _assign_scene, scene, embeddings, config, model, metrics, extra_timings)
+
+
+def baseline(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool) -> bytes:
+    """Decode, prepare and assign with the MeanShift baseline; returns the Result JSON bytes."""
+    return _guarded("the meanshift baseline", _baseline, body, content_type, config, limits, metrics)
+
+
+def warmup_scene() -> VoxelScene:
+    """A prepared synthetic scene for the network warm-up."""
+    return _guarded("warm-up", _warmup_scene)

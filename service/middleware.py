@@ -1,0 +1,73 @@
+"""Pure-ASGI middleware: bearer-token check and per-request metrics.
+
+Pure ASGI (not ``BaseHTTPMiddleware``) so request bodies stream through untouched and
+no extra task is spawned per request.
+"""
+
+from __future__ import annotations
+
+import hmac
+import time
+from typing import Any, Awaitable, Callable
+
+from .errors import error_response
+from .metrics import ServiceMetrics, route_label
+
+__all__ = ["AccessMiddleware"]
+
+Scope = dict[str, Any]
+Receive = Callable[[], Awaitable[dict[str, Any]]]
+Send = Callable[[dict[str, Any]], Awaitable[None]]
+
+#: Routes reachable without a token: orchestrators probe health without secrets.
+PUBLIC_PATHS = frozenset({"/health"})
+
+
+class AccessMiddleware:
+    """Counts requests by route and status, times them, and enforces the bearer token."""
+
+    def __init__(self, app: Callable[..., Awaitable[None]], metrics: ServiceMetrics, token: str | None) -> None:
+        self.app = app
+        self.metrics = metrics
+        self._expected = f"Bearer {token}".encode() if token else None
+
+    def _authorized(self, scope: Scope) -> bool:
+        if self._expected is None or scope["path"] in PUBLIC_PATHS:
+            return True
+        for name, value in scope.get("headers", ()):
+            if name == b"authorization":
+                # The scheme is case-insensitive (RFC 7235); the token is compared in constant time.
+                scheme, _, token = value.partition(b" ")
+                return hmac.compare_digest(b"Bearer " + token.strip(), self._expected) and scheme.lower() == b"bearer"
+        return False
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        route = route_label(scope["path"])
+        start = time.perf_counter()
+        status = 500  # if the app dies before answering, that is what the client sees
+
+        async def send_wrapper(message: dict[str, Any]) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                self.metrics.request_latency.labels(route).observe(time.perf_counter() - start)
+            await send(message)
+
+        try:
+            if not self._authorized(scope):
+                response = error_response(
+                    401,
+                    "unauthorized",
+                    "missing or wrong bearer token: send 'Authorization: Bearer <token>'",
+                    [{"loc": "headers.authorization", "msg": "missing or invalid"}],
+                    headers={"WWW-Authenticate": 'Bearer realm="shadowcorr"'},
+                )
+                self.metrics.errors.labels("unauthorized").inc()
+                await response(scope, receive, send_wrapper)
+                return
+            await self.app(scope, receive, send_wrapper)
+        finally:
+            self.metrics.requests.labels(route, str(status)).inc()

@@ -1,0 +1,136 @@
+"""HTTP service with a bearer token, one worker and tight limits: auth, overload (503), timeout (504).
+
+The main service tests (``test_service.py``) run without a token: every route is open there.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from service.testing import ServerProcess
+
+_ROOT = Path(__file__).resolve().parents[1]
+# The sample travels with the repo (examples/); the shared data folder is its other home.
+SAMPLE_DIR = next(
+    (d for d in (_ROOT / "examples" / "ue_sample", _ROOT.parent / "shared" / "data" / "ue_sample") if d.is_dir()),
+    _ROOT / "examples" / "ue_sample",
+)
+TOKEN = "s3cret-token-for-tests"
+TIMEOUT_S = 1.0
+
+
+@pytest.fixture(scope="module")
+def server():
+    srv = ServerProcess(
+        ["--workers", "1", "--queue-size", "1", "--request-timeout-s", str(TIMEOUT_S), "--max-wait-ms", "0",
+         "--retry-after-s", "3"],
+        env={"SHADOWCORR_AUTH_TOKEN": TOKEN},
+        token=TOKEN,
+    )
+    srv.start()
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    """A very small valid scene as a zip (answers well within the 1 s timeout)."""
+    import io
+    import zipfile
+
+    from shadowcorr.io import bundle_to_parts
+
+    from service.synthetic import synthetic_bundle
+
+    manifest, files = bundle_to_parts(synthetic_bundle(n_rocks=2, n_views=2, width=96, height=72))
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        zf.writestr("manifest.json", json.dumps(manifest))
+        for k, v in files.items():
+            zf.writestr(k, v)
+    return buf.getvalue()
+
+
+def test_bearer_token_guards_everything_but_health(server, tiny):
+    url = server.url
+    ok = {"Authorization": f"Bearer {TOKEN}"}
+    assert httpx.get(url + "/health").status_code == 200
+    for path in ("/info", "/metrics", "/openapi.json", "/docs", "/nope"):
+        r = httpx.get(url + path)
+        assert r.status_code == 401, path
+        assert r.json()["error"] == "unauthorized" and "bearer" in r.json()["message"].lower()
+        assert r.headers["www-authenticate"].startswith("Bearer")
+        assert httpx.get(url + path, headers={"Authorization": "Bearer wrong"}).status_code == 401
+        assert httpx.get(url + path, headers={"Authorization": TOKEN}).status_code == 401
+    r = httpx.post(url + "/correspond", files={"bundle": ("s.zip", tiny)})
+    assert r.status_code == 401
+    info = httpx.get(url + "/info", headers=ok)
+    assert info.status_code == 200 and info.json()["settings"]["auth"] == "bearer"
+    assert TOKEN not in info.text
+    assert httpx.get(url + "/info", headers={"Authorization": f"bearer {TOKEN}"}).status_code == 200
+    assert httpx.get(url + "/metrics", headers=ok).status_code == 200
+    r = httpx.post(url + "/correspond", files={"bundle": ("s.zip", tiny)}, headers=ok, timeout=60)
+    assert r.status_code == 200, r.text
+    assert len(r.json()["segments"]) >= 2
+
+
+def test_overload_gets_503_and_slow_request_gets_504(server, tiny):
+    if not SAMPLE_DIR.is_dir():
+        pytest.skip("sample data not available")
+    from shadowcorr.convert.ue import load_ue_scene
+    from shadowcorr.io import bundle_to_parts
+
+    # All 8 cameras of the sample: several seconds of work, far beyond the 1 s timeout.
+    manifest, files = bundle_to_parts(load_ue_scene(SAMPLE_DIR, 2001, range(8)))
+    parts = [("manifest", (None, json.dumps(manifest).encode()))] + [("f", (k, v)) for k, v in files.items()]
+    ok = {"Authorization": f"Bearer {TOKEN}"}
+    result: dict = {}
+
+    def slow() -> None:
+        result["r"] = httpx.post(server.url + "/correspond", files=parts, headers=ok, timeout=60)
+
+    (worker,) = server.worker_processes()
+    base = sum(worker.cpu_times()[:2])
+    t = threading.Thread(target=slow)
+    t.start()
+    while sum(worker.cpu_times()[:2]) - base < 0.1 and t.is_alive():
+        time.sleep(0.02)
+    busy = httpx.post(server.url + "/correspond", files={"bundle": ("s.zip", tiny)}, headers=ok, timeout=60)
+    t.join(60)
+    assert busy.status_code == 503, busy.text
+    assert busy.json()["error"] == "overloaded" and busy.headers["retry-after"] == "3"
+    r = result["r"]
+    assert r.status_code == 504, r.text
+    assert r.json()["error"] == "timeout" and f"{TIMEOUT_S:g} s" in r.json()["message"]
+
+    # The timed-out job's worker was stopped and replaced; the service recovers by itself.
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        h = httpx.get(server.url + "/health").json()
+        if h["workers"]["ready"] == 1 and h["workers"]["restarts"] >= 1:
+            break
+        time.sleep(0.5)
+    assert h["workers"]["restarts"] == 1 and h["ready"], h
+    r = httpx.post(server.url + "/correspond", files={"bundle": ("s.zip", tiny)}, headers=ok, timeout=60)
+    assert r.status_code == 200, r.text
+    assert httpx.get(server.url + "/health").json()["queue_depth"] == 0
+
+
+def test_settings_from_env_and_flags(monkeypatch):
+    from service.cli import build_parser, settings_from_args
+    from service.settings import ServiceSettings
+
+    monkeypatch.setenv("SHADOWCORR_WORKERS", "5")
+    monkeypatch.setenv("SHADOWCORR_MAX_WAIT_MS", "25")
+    monkeypatch.setenv("SHADOWCORR_AUTH_TOKEN", "")
+    s = settings_from_args(build_parser().parse_args(["--max-wait-ms", "7", "--port", "9000"]))
+    assert (s.workers, s.max_wait_ms, s.port, s.auth_token) == (5, 7.0, 9000, None)
+    assert ServiceSettings().public_dict()["auth"] == "none"
+    with pytest.raises(Exception):
+        settings_from_args(build_parser().parse_args(["--workers", "0"]))
