@@ -31,7 +31,7 @@ class SynthConfig(BaseModel):
     # ---- field and ground
     field_radius: float = Field(320.0, gt=0, description="rocks are dropped inside this disc around the centre")
     cluster_prob: float = Field(0.35, ge=0, le=1, description="chance a rock is dropped against another")
-    stack_prob: float = Field(0.2, ge=0, le=1, description="chance a rock is dropped on top of another")
+    stack_prob: float = Field(0.3, ge=0, le=1, description="chance a rock is dropped on top of another")
     sink_depth: float = Field(5.0, ge=0, description="how deep ground-resting rocks sit in the ground")
     terrain_half_size: float = Field(1500.0, gt=0, description="ground extends +-this around the centre")
     terrain_resolution: int = Field(256, ge=16, le=2048, description="heightfield samples per side")

@@ -244,7 +244,8 @@ def generate_dataset(
     ``workers`` > 1 runs scenes in that many spawned processes (spawn, not fork: OpenGL
     contexts and MuJoCo do not survive a fork safely).  ``resume`` skips scenes whose
     manifest already exists (an interrupted run can be continued with the same seed).
-    Returns the scene directories in index order.
+    Returns the scene directories in index order.  As with any spawn-based pool, a
+    script calling this with ``workers`` > 1 needs an ``if __name__ == "__main__":`` guard.
     """
     from tqdm import tqdm
 
