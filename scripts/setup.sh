@@ -9,9 +9,11 @@ cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
 
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-  # Offscreen OpenGL for `shadowcorr synth` (MuJoCo renders depth and masks through OSMesa).
-  if ! (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends libosmesa6 >/dev/null); then
-    echo "warning: could not install libosmesa6; 'shadowcorr synth' will be unavailable" >&2
+  # Offscreen OpenGL (EGL on Mesa's software rasteriser) lets `shadowcorr synth` render
+  # depth and masks with MuJoCo; without it the generator falls back to its numpy renderer.
+  if ! (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+        libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 >/dev/null); then
+    echo "warning: could not install the EGL packages; 'shadowcorr synth' will use its slower numpy renderer" >&2
   fi
 fi
 
