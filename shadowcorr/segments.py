@@ -124,7 +124,7 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         on = (blob_image > 0) & valid
         vv, uu = np.nonzero(on)
         blob_of_pixel = blob_image[vv, uu] - 1
-        order = np.argsort(blob_of_pixel, kind="stable")
+        order = np.argsort(blob_of_pixel, kind="stable")  # keeps pixels in raster order within a blob
         vv, uu, blob_of_pixel = vv[order], uu[order], blob_of_pixel[order]
         pts = _back_project(view, vv.astype(np.float64), uu.astype(np.float64), depth[vv, uu].astype(np.float64))
         points.append(pts * scale)
