@@ -44,7 +44,9 @@ from shadowcorr.result import Result
 from .scenes import sphere_scene
 
 REPO = Path(__file__).resolve().parents[1]
-UE_SAMPLE = REPO.parent / "shared" / "data" / "ue_sample"
+# The sample scene ships in the repository; the shared data folder is the fallback.
+UE_SAMPLE = next((d for d in (REPO / "examples" / "ue_sample", REPO.parent / "shared" / "data" / "ue_sample")
+                  if (d / "Set2001_Depth_0.exr").exists()), REPO / "examples" / "ue_sample")
 TOKEN = "test-token-not-secret"
 SYNTH_SCENES = 5
 

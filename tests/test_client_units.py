@@ -39,7 +39,9 @@ from clients.upload import archive_content_type
 from .scenes import sphere_scene
 
 REPO = Path(__file__).resolve().parents[1]
-UE_SAMPLE = REPO.parent / "shared" / "data" / "ue_sample"
+# The sample scene ships in the repository; the shared data folder is the fallback.
+UE_SAMPLE = next((d for d in (REPO / "examples" / "ue_sample", REPO.parent / "shared" / "data" / "ue_sample")
+                  if (d / "Set2001_Depth_0.exr").exists()), REPO / "examples" / "ue_sample")
 
 
 def small_scene(n: int = 2, seed: int = 0):
