@@ -168,16 +168,19 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             code = "unsupported_media_type" if e.status == 415 else "bad_multipart"
             raise ApiError(e.status, code, str(e), [{"loc": e.loc, "msg": str(e)}]) from None
 
+        async def run() -> bytes:
+            t0 = time.perf_counter()
+            body = await read_body(request, settings.max_body_bytes)
+            metrics.stage_latency.labels("read_body").observe(time.perf_counter() - t0)
+            work = runtime.correspond(body, content_type, config, bool(params["metrics"]))
+            del body  # the pipeline owns the upload now and drops it once it is decoded
+            return await _unless_disconnected(request, work)
+
         runtime.admit()
         try:
-            async with asyncio.timeout(settings.request_timeout_s):
-                t0 = time.perf_counter()
-                body = await read_body(request, settings.max_body_bytes)
-                metrics.stage_latency.labels("read_body").observe(time.perf_counter() - t0)
-                work = runtime.correspond(body, content_type, config, bool(params["metrics"]))
-                del body  # the pipeline owns the upload now and drops it once it is decoded
-                out = await _unless_disconnected(request, work)
-        except TimeoutError:
+            # wait_for, not asyncio.timeout: the project supports Python 3.10.
+            out = await asyncio.wait_for(run(), settings.request_timeout_s)
+        except asyncio.TimeoutError:
             raise ApiError(
                 504, "timeout", f"the request did not finish within {settings.request_timeout_s:g} s"
             ) from None

@@ -39,13 +39,23 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
             p.add_argument("--model", flag, dest=name, default=None, metavar="PATH", help=help_text)
         else:
             # Strings go to pydantic as-is, so flags and env vars are validated by the same rules.
-            p.add_argument(flag, dest=name, default=None, metavar=name.split("_")[-1].upper(), help=help_text)
+            p.add_argument(flag, dest=name, default=None, metavar=_metavar(name), help=help_text)
     p.add_argument(
         "--auth-token-file",
         default=None,
         metavar="PATH",
         help="read the bearer token from this file (env SHADOWCORR_AUTH_TOKEN also works; default: no auth)",
     )
+
+
+def _metavar(name: str) -> str:
+    if name.endswith("_s"):
+        return "SECONDS"
+    if name.endswith("_ms"):
+        return "MS"
+    if name.endswith("_bytes"):
+        return "BYTES"
+    return {"host": "HOST", "device": "DEVICE", "log_level": "LEVEL"}.get(name, "N")
 
 
 def add_serve_parser(subparsers: Any) -> argparse.ArgumentParser:

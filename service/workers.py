@@ -213,18 +213,29 @@ class WorkerPool:
             pass
 
     async def _next_job(self, slot: _Slot) -> tuple[int, int, _Job] | None:
-        """The next live job, or None as soon as the slot's process is found dead."""
-        while True:
-            try:
-                priority, seq, job = await asyncio.wait_for(self._queue.get(), _LIVENESS_PERIOD_S)
-            except asyncio.TimeoutError:
+        """The next live job, or None as soon as the slot's process is found dead.
+
+        One ``queue.get()`` task is awaited across liveness checks and only cancelled when
+        the worker is dead; ``asyncio.wait_for(queue.get(), ...)`` is avoided on purpose:
+        before Python 3.12 it can drop an item that arrives just as the timeout fires.
+        """
+        getter: asyncio.Future = asyncio.ensure_future(self._queue.get())
+        try:
+            while True:
+                done, _ = await asyncio.wait({getter}, timeout=_LIVENESS_PERIOD_S)
+                if getter in done:
+                    priority, seq, job = getter.result()
+                    self._gauge()
+                    if job.future.done():  # cancelled while queued
+                        getter = asyncio.ensure_future(self._queue.get())
+                        continue
+                    return priority, seq, job
                 if not slot.alive():
                     return None
-                continue
-            self._gauge()
-            if job.future.done():  # cancelled while queued
-                continue
-            return priority, seq, job
+        finally:
+            # Cancelling a pending Queue.get() leaves its item in the queue.
+            if not getter.done():
+                getter.cancel()
 
     async def _execute(self, slot: _Slot, priority: int, seq: int, job: _Job) -> None:
         assert slot.executor is not None
@@ -264,6 +275,9 @@ class WorkerPool:
             )
             try:
                 pid = await asyncio.wait_for(asyncio.wrap_future(executor.submit(jobs.hello)), self.startup_timeout_s)
+            except asyncio.CancelledError:  # shutdown during start-up: do not leave the process behind
+                await asyncio.to_thread(_kill_executor, executor)
+                raise
             except (BrokenProcessPool, asyncio.TimeoutError, OSError) as e:
                 delay = _RESPAWN_BACKOFF_S[min(attempt, len(_RESPAWN_BACKOFF_S) - 1)]
                 log.error("worker %s failed to start (%s); retrying in %.1f s", slot.index, type(e).__name__, delay)

@@ -134,3 +134,21 @@ def test_settings_from_env_and_flags(monkeypatch):
     assert ServiceSettings().public_dict()["auth"] == "none"
     with pytest.raises(Exception):
         settings_from_args(build_parser().parse_args(["--workers", "0"]))
+
+
+def test_bad_model_or_setting_fails_fast(tmp_path):
+    """A container must crash loudly on a bad model file or setting, not serve 503s forever."""
+    import subprocess
+    import sys
+
+    from service.testing import REPO_ROOT
+
+    env = {k: v for k, v in __import__("os").environ.items() if not k.startswith("SHADOWCORR_")}
+    bad = tmp_path / "model.safetensors"
+    bad.write_bytes(b"not a model")
+    r = subprocess.run([sys.executable, "-m", "service", "--port", "0", "--model", str(bad)], cwd=REPO_ROOT,
+                       env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "model.safetensors" in r.stderr, r.stderr[-2000:]
+    r = subprocess.run([sys.executable, "-m", "service"], cwd=REPO_ROOT, env={**env, "SHADOWCORR_WORKERS": "zero"},
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "workers" in r.stderr, r.stderr[-2000:]
