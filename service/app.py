@@ -172,11 +172,11 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             t0 = time.perf_counter()
             body = await read_body(request, settings.max_body_bytes)
             metrics.stage_latency.labels("read_body").observe(time.perf_counter() - t0)
-            work = runtime.correspond(body, content_type, config, bool(params["metrics"]))
+            work = runtime.correspond(ticket, body, content_type, config, bool(params["metrics"]))
             del body  # the pipeline owns the upload now and drops it once it is decoded
             return await _unless_disconnected(request, work)
 
-        runtime.admit()
+        ticket = runtime.admit()
         try:
             # wait_for, not asyncio.timeout: the project supports Python 3.10.
             out = await asyncio.wait_for(run(), settings.request_timeout_s)
@@ -185,7 +185,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
                 504, "timeout", f"the request did not finish within {settings.request_timeout_s:g} s"
             ) from None
         finally:
-            runtime.release()
+            runtime.release(ticket)
         return Response(out, media_type="application/json")
 
     @app.get("/health", summary="Liveness and readiness (no auth)")

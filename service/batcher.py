@@ -3,7 +3,9 @@
 Prepared scenes from concurrent requests are queued; one loop takes up to
 ``max_batch_size`` of them, waiting at most ``max_wait_s`` after the oldest arrived
 for company, and runs a single ``embed(model, scenes)`` forward pass over the ragged
-batch in one dedicated thread.  One forward pass over *k* scenes costs less than *k*
+batch in one dedicated thread.  It does not wait when nothing else is on its way
+(``upstream()`` says how many scenes are still being prepared): a lone request on an
+idle service pays no batching delay.  One forward pass over *k* scenes costs less than *k*
 passes (fixed per-call overhead, larger matrix products), and the single thread keeps
 the network from competing with itself for cores.
 
@@ -59,6 +61,7 @@ class DynamicBatcher(Generic[T, R]):
         max_wait_s: float = 0.01,
         metrics: ServiceMetrics | None = None,
         thread: ThreadPoolExecutor | None = None,
+        upstream: Callable[[], int] | None = None,
     ) -> None:
         if max_batch_size < 1:
             raise ValueError("max_batch_size must be >= 1")
@@ -66,6 +69,7 @@ class DynamicBatcher(Generic[T, R]):
         self.max_batch_size = max_batch_size
         self.max_wait_s = max(0.0, max_wait_s)
         self.metrics = metrics
+        self.upstream = upstream
         self._thread = thread or ThreadPoolExecutor(max_workers=1, thread_name_prefix="shadowcorr-inference")
         self._owns_thread = thread is None
         self._items: deque[_Item[T]] = deque()
@@ -116,6 +120,8 @@ class DynamicBatcher(Generic[T, R]):
             # Wait for company until the oldest item has waited max_wait_s (or the batch is full).
             deadline = self._items[0].enqueued + self.max_wait_s
             while len(self._items) < self.max_batch_size:
+                if self.upstream is not None and self.upstream() <= 0:
+                    break  # nobody else is coming: waiting would only add latency
                 remaining = deadline - loop.time()
                 if remaining <= 0:
                     break

@@ -60,6 +60,7 @@ class Runtime:
         self.warmed_up = False
         self.startup_error: str | None = None
         self.in_flight = 0
+        self.preparing = 0  # admitted requests that may still reach the batcher (it waits for them)
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="shadowcorr-inference")
         self.pool = WorkerPool(
             settings.workers,
@@ -74,6 +75,7 @@ class Runtime:
             max_wait_s=settings.max_wait_ms / 1000.0,
             metrics=self.metrics,
             thread=self._thread,
+            upstream=lambda: self.preparing,
         )
         self._startup_task: asyncio.Task | None = None
 
@@ -201,7 +203,7 @@ class Runtime:
         }
 
     # ------------------------------------------------------------------ requests
-    def admit(self) -> None:
+    def admit(self) -> "Ticket":
         """Count a request in, or refuse it (503) when not ready or when the queue is full."""
         headers = {"Retry-After": str(self.settings.retry_after_s)}
         if not self.ready:
@@ -215,24 +217,39 @@ class Runtime:
                 headers=headers,
             )
         self.in_flight += 1
+        self.preparing += 1
         self.metrics.queue_depth.set(self.in_flight)
+        return Ticket()
 
-    def release(self) -> None:
+    def left_upstream(self, ticket: "Ticket") -> None:
+        """The request will not reach the batcher any more (it has a scene, or failed)."""
+        if ticket.upstream:
+            ticket.upstream = False
+            self.preparing -= 1
+
+    def release(self, ticket: "Ticket") -> None:
+        self.left_upstream(ticket)
         self.in_flight -= 1
         self.metrics.queue_depth.set(self.in_flight)
 
-    async def correspond(self, body: bytes, content_type: str, config: ShadowCorrConfig, metrics: bool) -> bytes:
+    async def correspond(
+        self, ticket: "Ticket", body: bytes, content_type: str, config: ShadowCorrConfig, metrics: bool
+    ) -> bytes:
         """Run one scene through the pipeline; returns the Result JSON bytes."""
         stage = self.metrics.stage_latency
         t_start = time.perf_counter()
         try:
             if config.method == "meanshift":
+                self.left_upstream(ticket)  # no network: never in the batcher
                 out = await self.pool.run(jobs.baseline, body, content_type, config, self.limits, metrics)
                 stage.labels("baseline").observe(time.perf_counter() - t_start)
                 return out
-            prepared: jobs.Prepared = await self.pool.run(
-                jobs.decode_and_prepare, body, content_type, config, self.limits, priority=PRIORITY_START
-            )
+            try:
+                prepared: jobs.Prepared = await self.pool.run(
+                    jobs.decode_and_prepare, body, content_type, config, self.limits, priority=PRIORITY_START
+                )
+            finally:
+                self.left_upstream(ticket)
             del body  # the upload is no longer needed; let it go before the long waits
             t_prepared = time.perf_counter()
             stage.labels("queue").observe(max(0.0, t_prepared - t_start - (prepared.decode_ms + prepared.prepare_ms) / 1e3))
@@ -259,6 +276,15 @@ class Runtime:
         """Runs in the inference thread."""
         assert self.model is not None
         return embed(self.model, scenes)
+
+
+class Ticket:
+    """One admitted request's place in the bookkeeping."""
+
+    __slots__ = ("upstream",)
+
+    def __init__(self) -> None:
+        self.upstream = True
 
 
 def _request_options() -> tuple[str, ...]:
