@@ -5,7 +5,10 @@ client count N (default 1, 4, 16) runs N concurrent clients that each send the s
 scene ``--requests`` times, back to back.  Prints per N: p50 / p95 / max latency,
 throughput (scenes/s), mean network batch size (from ``/metrics``), the latency of
 ``/health`` probed during the load, and errors (non-200 answers, or labels that differ
-from the first answer).
+from the first answer).  When it started the server itself it also prints the CPU
+seconds the server and its workers spent per scene: on a shared machine wall-clock
+figures depend on what else runs, CPU per scene does not, and ``cores / CPU per
+scene`` bounds the throughput of an idle machine.
 
     .venv/bin/python benchmarks/bench_service.py                       # sample scene, 2 workers
     .venv/bin/python benchmarks/bench_service.py --clients 1,4,16 --requests 4 --workers 2
@@ -74,6 +77,25 @@ def batch_totals(client: httpx.Client) -> tuple[float, float]:
     return total, count
 
 
+def server_cpu_s(server: ServerProcess | None) -> float | None:
+    """CPU seconds (user + system) of the server process and all its children so far."""
+    if server is None:
+        return None
+    try:
+        import psutil
+    except ImportError:
+        return None
+    main = psutil.Process(server.pid)
+    total = 0.0
+    for p in [main, *main.children(recursive=True)]:
+        try:
+            t = p.cpu_times()
+            total += t.user + t.system
+        except psutil.Error:
+            pass
+    return total
+
+
 def pct(values: list[float], q: float) -> float:
     if not values:
         return float("nan")
@@ -124,6 +146,24 @@ async def run_level(url: str, headers: dict, scene: bytes, clients: int, request
     return latencies, errors, wall, health
 
 
+def _load_average() -> str:
+    try:
+        import os
+
+        return " ".join(f"{x:.1f}" for x in os.getloadavg())
+    except (OSError, AttributeError):
+        return ""
+
+
+def _cores() -> int:
+    import os
+
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--url", help="use this running server instead of starting one")
@@ -165,12 +205,15 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             reference = [s["object"] for s in first.json()["segments"]]
             print(f"{'N':>3} {'reqs':>5} {'p50 s':>7} {'p95 s':>7} {'max s':>7} {'scenes/s':>9} {'batch':>6} "
-                  f"{'health p50/max ms':>18} {'errors':>6}")
+                  f"{'health p50/max ms':>18} {'errors':>6} {'cpu s/scene':>11}")
             rows = []
             for n in [int(x) for x in args.clients.split(",") if x.strip()]:
                 s0, c0 = batch_totals(c)
+                cpu0 = server_cpu_s(server)
                 lat, errors, wall, health = asyncio.run(run_level(url, headers, scene, n, args.requests, reference))
+                cpu1 = server_cpu_s(server)
                 s1, c1 = batch_totals(c)
+                cpu_per_scene = (cpu1 - cpu0) / max(len(lat), 1) if cpu0 is not None and cpu1 is not None else None
                 mean_batch = (s1 - s0) / (c1 - c0) if c1 > c0 else float("nan")
                 row = {
                     "clients": n,
@@ -183,13 +226,18 @@ def main(argv: list[str] | None = None) -> int:
                     "health_p50_ms": 1e3 * statistics.median(health) if health else float("nan"),
                     "health_max_ms": 1e3 * max(health) if health else float("nan"),
                     "errors": len(errors),
+                    "server_cpu_s_per_scene": cpu_per_scene,
                 }
                 rows.append(row)
                 print(f"{n:>3} {row['requests']:>5} {row['p50_s']:>7.2f} {row['p95_s']:>7.2f} {row['max_s']:>7.2f} "
                       f"{row['throughput_scenes_per_s']:>9.2f} {mean_batch:>6.2f} "
-                      f"{row['health_p50_ms']:>8.1f}/{row['health_max_ms']:<9.1f} {len(errors):>6}")
+                      f"{row['health_p50_ms']:>8.1f}/{row['health_max_ms']:<9.1f} {len(errors):>6} "
+                      f"{cpu_per_scene if cpu_per_scene is not None else float('nan'):>11.2f}")
                 for e in errors[:5]:
                     print(f"      error: {e}")
+            load = _load_average()
+            if load:
+                print(f"load average at the end: {load} on {_cores()} cores (other processes share them)")
             if args.json:
                 Path(args.json).write_text(json.dumps({"scene": what, "settings": settings, "rows": rows}, indent=1))
     finally:

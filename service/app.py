@@ -153,14 +153,17 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         openapi_extra={"requestBody": _BODY_SCHEMA},
         summary="Label every segment of one scene with its physical object",
     )
-    async def correspond(request: Request, query: Annotated[CorrespondQuery, Query()]) -> Response:  # type: ignore[valid-type]
+    async def correspond(
+        request: Request, query: Annotated[CorrespondQuery, Query()]  # type: ignore[valid-type]
+    ) -> Response:
         params = query.model_dump()  # type: ignore[attr-defined]
         options = {k: params[k] for k in REQUEST_OPTIONS if params.get(k) is not None}
         try:
             config = base_config.with_options(**options, method=params["method"])
         except ValidationError as e:
             problems = problems_from_pydantic(e.errors(include_url=False), prefix="query")
-            raise ApiError(422, "invalid_options", "invalid options: " + "; ".join(f"{p['loc']}: {p['msg']}" for p in problems), problems) from None
+            summary = "; ".join(f"{p['loc']}: {p['msg']}" for p in problems)
+            raise ApiError(422, "invalid_options", f"invalid options: {summary}", problems) from None
         content_type = request.headers.get("content-type", "")
         try:
             content_kind(content_type)  # wrong media type: refuse before reading a byte
