@@ -148,7 +148,7 @@ def _render(scene: SceneSource, bundle: Any, result: Any, args: argparse.Namespa
     except ModuleNotFoundError as exc:
         raise BundleInputError(f"--render needs shadowcorr.render, which this installation lacks ({exc})") from None
     # The renderer re-cuts the masks into segments: it must use the options the server used.
-    engine: dict[str, Any] = {}
+    engine: dict[str, Any] = dict(result.config or {})
     if args.no_split_components:
         engine["split_components"] = False
     if args.min_blob_pixels is not None:

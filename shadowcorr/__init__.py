@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from ._version import __version__
 
 _EXPORTS = {
-    "assign": "assign",
+    "assign": "assignment",
     "BundleError": "errors",
     "Problem": "errors",
     "Manifest": "bundle",
@@ -62,7 +62,7 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
-    from .assign import assign
+    from .assignment import assign
     from .bundle import Manifest, PointSegments, SceneBundle, View
     from .config import REQUEST_OPTIONS, ShadowCorrConfig
     from .errors import BundleError, Problem

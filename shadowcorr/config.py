@@ -69,6 +69,10 @@ class ShadowCorrConfig(BaseModel):
     bandwidth: float = Field(0.7, gt=0, description="MeanShift bandwidth on the network embeddings")
     baseline_bandwidth: float = Field(0.2, gt=0, description="MeanShift bandwidth of the 'meanshift' baseline")
     min_cluster_size: int = Field(5, ge=1, description="smaller clusters merge into the nearest larger one")
+    orphan_max_gap: float = Field(
+        2.0, ge=0, description="a segment without kept voxels joins an object only if its shadow comes within "
+        "this many voxels of that object's kept voxels; otherwise it is an object of its own"
+    )
 
     @model_validator(mode="after")
     def _geometry(self) -> "ShadowCorrConfig":

@@ -12,7 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .assign import assign
+from .assignment import assign
 from .bundle import SceneBundle, unit_scale
 from .config import ShadowCorrConfig
 from .nn import Model, load_model, run_batched

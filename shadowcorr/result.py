@@ -26,7 +26,7 @@ class SegmentLabel(BaseModel):
         description="how the label was found: 'vote' (majority of its kept voxels); 'unfiltered_voxels' "
         "(no voxel survived the consensus filter: nearest kept voxels of its own shadow voted); "
         "'nearest_object' (no shadow at all: nearest kept voxel to its centroid); "
-        "'own_object' (no valid 3D point: an object of its own)",
+        "'own_object' (no valid 3D point, or its shadow is near no kept voxel: an object of its own)",
     )
 
 
@@ -61,6 +61,9 @@ class Result(BaseModel):
     warnings: list[str] = Field(default_factory=list)
     metrics: dict[str, float | int] | None = Field(
         None, description="quality against the bundle's ground truth, when it has one and metrics were asked for"
+    )
+    config: dict[str, object] | None = Field(
+        None, description="the ShadowCorrConfig the result was computed with (how segments were cut, clustering, ...)"
     )
     shadowcorr_version: str = __version__
 

@@ -108,21 +108,8 @@ def build_voxel_scene(
     gamma = gamma_all[kept]
     v = voxel_index.shape[0]
 
-    has_voxel = np.bincount(member_segment, minlength=s) > 0
-    has_shadow = np.bincount(shadows.segment, minlength=s) > 0
-    orphans = np.flatnonzero(~has_voxel)
-    orphan_member = np.isin(shadows.segment, orphans)
-    for o in orphans:  # a few segments at most
-        if has_shadow[o]:
-            why, how = "no surviving voxel", "labelled by the kept voxels nearest to its own shadow"
-        elif shells.count[o] > 0:
-            why, how = "no shadow voxel", "labelled by the kept voxel nearest to its centroid"
-        else:
-            why, how = "no valid 3D point", "given an object of its own"
-        warnings.append(
-            f"segment {o} (view {segments.view_names[segments.view[o]]}, instance {segments.instance[o]}, "
-            f"component {segments.component[o]}): {why}; {how}"
-        )
+    # Segments left without a kept voxel are labelled in `assign` from their own shadow.
+    orphan_member = ~np.isin(shadows.segment, np.unique(member_segment))
     timings_ms["consensus"] = (time.perf_counter() - t0) * 1e3
 
     t0 = time.perf_counter()

@@ -21,7 +21,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     if not result_path.is_file():
         raise FileNotFoundError(f"{result_path}: no such result file")
     result = Result.model_validate(json.loads(result_path.read_text()))
-    engine: dict[str, object] = {}
+    # The segmentation settings come from the result; flags override them (results of older versions).
+    engine: dict[str, object] = dict(result.config or {})
     if args.no_split_components:
         engine["split_components"] = False
     if args.min_blob_pixels is not None:

@@ -56,9 +56,10 @@ class RenderConfig(BaseModel):
     map_size: int = Field(1000, ge=100, le=8000, description="pixels across the larger horizontal extent of the map")
     sheet_tile_width: int = Field(480, ge=64, le=4000, description="width of one view on the contact sheet")
     sheet_columns: int = Field(4, ge=1, le=16)
-    engine: ShadowCorrConfig = Field(
-        default_factory=ShadowCorrConfig,
-        description="segmentation settings the result was computed with (split_components, min_blob_pixels, max_depth)",
+    engine: ShadowCorrConfig | None = Field(
+        None,
+        description="segmentation settings the result was computed with (split_components, min_blob_pixels, "
+        "max_depth); None: the configuration recorded in the result (or the defaults)",
     )
 
 
@@ -140,6 +141,9 @@ def render_result(bundle: SceneBundle, result: Result, out_dir: str | Path, *, c
     the result was computed with other ``engine`` settings) are left undrawn and logged.
     """
     config = config or RenderConfig()
+    if config.engine is None:
+        recorded = ShadowCorrConfig.model_validate(result.config) if result.config else ShadowCorrConfig()
+        config = config.model_copy(update={"engine": recorded})
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     unknown_views = sorted({s.view for s in result.segments} - {v.name for v in bundle.views})

@@ -32,38 +32,67 @@ def cluster_voxels(embeddings: np.ndarray, bandwidth: float, min_cluster_size: i
 
 
 def _label_orphans(scene: VoxelScene, voxel_label: np.ndarray, seg_label: np.ndarray, support: np.ndarray,
-                   how: list[str]) -> None:
-    """Give a label to segments without kept voxels (modifies the arrays in place)."""
+                   how: list[str], max_gap: float) -> None:
+    """Give a label to segments without kept voxels (modifies the arrays in place).
+
+    The segment's own (unfiltered) shadow voxels that lie within ``max_gap`` voxels of a
+    kept voxel take that voxel's cluster, and vote.  A segment whose shadow comes near
+    no kept voxel is nowhere near any object the consensus found - typically a rock seen
+    from one view only - and becomes an object of its own rather than joining a far one.
+    """
     orphans = np.flatnonzero(seg_label < 0)
     if orphans.size == 0:
         return
-    if scene.num_voxels == 0:
-        # Nothing survived anywhere: every segment is its own object.
-        seg_label[orphans] = np.arange(orphans.size) + (voxel_label.max(initial=-1) + 1)
-        support[orphans] = 0.0
-        for o in orphans:
-            how[o] = "own_object"
-        return
-    tree = cKDTree(scene.voxel_index.astype(np.float64))
-    has_shadow = np.isin(orphans, scene.orphan_segment)
-    with_shadow = orphans[has_shadow]
-    if with_shadow.size:
-        pick = np.isin(scene.orphan_segment, with_shadow)
-        _, nearest = tree.query(scene.orphan_index[pick].astype(np.float64), k=1)
-        lab, sup = majority_vote(voxel_label[nearest], scene.orphan_segment[pick], scene.num_segments)
-        seg_label[with_shadow] = lab[with_shadow]
-        support[with_shadow] = sup[with_shadow]
-        for o in with_shadow:
-            how[o] = "unfiltered_voxels"
     next_label = int(max(voxel_label.max(initial=-1), seg_label.max(initial=-1))) + 1
-    for o in orphans[~has_shadow]:  # a handful at most: per-segment, not per-point
-        centroid = scene.segment_centroid[o]
-        if np.all(np.isfinite(centroid)):
-            _, nearest = tree.query(centroid / scene.config.voxel_size, k=1)
-            seg_label[o], support[o], how[o] = voxel_label[nearest], 0.0, "nearest_object"
-        else:
+    if scene.num_voxels:
+        tree = cKDTree(scene.voxel_index.astype(np.float64))
+        pick = np.isin(scene.orphan_segment, orphans)
+        if pick.any():
+            gap, nearest = tree.query(scene.orphan_index[pick].astype(np.float64), k=1)
+            near = gap <= max_gap
+            lab, sup = majority_vote(voxel_label[nearest[near]], scene.orphan_segment[pick][near], scene.num_segments)
+            voted = orphans[lab[orphans] >= 0]
+            seg_label[voted] = lab[voted]
+            support[voted] = sup[voted]
+            for o in voted:
+                how[o] = "unfiltered_voxels"
+        for o in orphans[seg_label[orphans] < 0]:  # a handful at most: per segment, not per point
+            centroid = scene.segment_centroid[o]
+            if not np.isin(o, scene.orphan_segment) and np.all(np.isfinite(centroid)):
+                gap, nearest = tree.query(centroid / scene.config.voxel_size, k=1)
+                if gap <= max_gap:
+                    seg_label[o], support[o], how[o] = voxel_label[nearest], 0.0, "nearest_object"
+                    continue
             seg_label[o], support[o], how[o] = next_label, 0.0, "own_object"
             next_label += 1
+    else:
+        for o in orphans:
+            seg_label[o], support[o], how[o] = next_label, 0.0, "own_object"
+            next_label += 1
+
+
+_HOW = {
+    "unfiltered_voxels": "labelled by the kept voxels nearest to its own shadow",
+    "nearest_object": "labelled by the kept voxel nearest to its centroid",
+    "own_object": "given an object of its own",
+}
+
+
+def _orphan_warnings(scene: VoxelScene, how: list[str]) -> list[str]:
+    out = []
+    with_shadow = set(np.unique(scene.orphan_segment).tolist())
+    for o, h in enumerate(how):
+        if h == "vote":
+            continue
+        if o in with_shadow:
+            why = "no surviving voxel"
+        elif np.all(np.isfinite(scene.segment_centroid[o])):
+            why = "no shadow voxel"
+        else:
+            why = "no valid 3D point"
+        out.append(f"segment {o} (view {scene.view_names[scene.segment_view[o]]}, instance "
+                   f"{scene.segment_instance[o]}, component {scene.segment_component[o]}): {why}; {_HOW[h]}")
+    return out
 
 
 def assign(
@@ -93,7 +122,8 @@ def assign(
     seg_label = seg_label.astype(np.int64)
     support = support.astype(np.float64)
     how = ["vote"] * s
-    _label_orphans(scene, voxel_label, seg_label, support, how)
+    _label_orphans(scene, voxel_label, seg_label, support, how, config.orphan_max_gap)
+    warnings = list(scene.warnings) + _orphan_warnings(scene, how)
 
     # Objects are numbered 0..K-1 in order of their first segment.
     _, first = np.unique(seg_label, return_index=True)
@@ -131,8 +161,9 @@ def assign(
         objects=objects,
         model=model if config.method == "shadowcorr" else None,
         timings_ms={k: round(v, 3) for k, v in timings.items()},
-        warnings=list(scene.warnings),
+        warnings=warnings,
         metrics=result_metrics,
+        config=config.model_dump(mode="json"),
     )
 
 
