@@ -104,31 +104,40 @@ def check_instances(bundle: SceneBundle, max_segments: int, min_blob_pixels: int
     if bundle.point_segments is not None:
         return
     total = 0
-    usable_pixels = 0
+    any_foreground = False
+    usable = False  # some instance pixel with valid depth (the loader zeroes invalid depth)
     threshold = max(min_blob_pixels, 1)
     for view in bundle.views:
         mask = view.mask
         if mask is None or mask.size == 0:
             continue
-        top = int(mask.max())
-        if top < _BINCOUNT_MAX_ID:
-            counts = np.bincount(mask.ravel().clip(0), minlength=1)[1:]
+        on = mask > 0
+        fg = mask[on]  # foreground only: usually a small share of the pixels, so counting is cheap
+        if fg.size == 0:
+            continue
+        any_foreground = True
+        if int(fg.max()) < _BINCOUNT_MAX_ID:
+            counts = np.bincount(fg)
         else:
-            _, counts = np.unique(mask[mask > 0], return_counts=True)
+            _, counts = np.unique(fg, return_counts=True)
         total += int(np.count_nonzero(counts >= threshold))
         if total > max_segments:
             raise JobError(
                 413,
                 "too_many_segments",
-                f"the masks hold more than {max_segments} instances (counted up to view {view.name!r}); "
+                f"the masks hold at least {total} instances (counted up to view {view.name!r}); "
                 f"the limit is {max_segments} segments per scene",
                 [{"loc": f"views[{view.name}].mask", "msg": f"more than {max_segments} instances in the scene"}],
             )
-        if view.depth is not None and view.depth.shape == mask.shape:
-            depth = view.depth
-            usable_pixels += int(np.count_nonzero((mask > 0) & (depth > 0) & np.isfinite(depth)))
-    if total == 0 or usable_pixels == 0:
-        why = "every mask is empty (all background)" if total == 0 else "no instance pixel has a valid depth"
+        if not usable and view.depth is not None and view.depth.shape == mask.shape:
+            usable = bool((view.depth[on] > 0).any())
+    if total == 0 or not usable:
+        if not any_foreground:
+            why = "every mask is empty (all background)"
+        elif total == 0:
+            why = f"every instance has fewer than min_blob_pixels = {min_blob_pixels} pixels"
+        else:
+            why = "no instance pixel has a valid depth"
         raise JobError(
             422,
             "no_segments",

@@ -134,9 +134,15 @@ class WorkerPool:
         await self._all_started.wait()
 
     async def close(self) -> None:
-        """Stop the slots and their processes (queued jobs fail; call after draining)."""
+        """Stop the slots and their processes (queued jobs fail; call after draining).
+
+        A job still running now belongs to a request that the graceful-shutdown timeout
+        has already abandoned: its worker is killed rather than waited for.
+        """
         self._closing = True
         for slot in self._slots:
+            if slot.job is not None:
+                slot.kill()
             if slot.task is not None:
                 slot.task.cancel()
         await asyncio.gather(*(s.task for s in self._slots if s.task is not None), return_exceptions=True)
@@ -262,6 +268,8 @@ class WorkerPool:
             _settle(job, result=result)
         finally:
             slot.job, job.slot = None, None
+            if self._closing:  # the slot was stopped mid-job: nobody may wait forever
+                _settle(job, exc=RuntimeError("the service is shutting down"))
 
     async def _spawn(self, slot: _Slot) -> None:
         """Create the slot's executor and wait for its warmed-up worker (with backoff on failure)."""

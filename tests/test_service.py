@@ -294,6 +294,12 @@ def _bad_cases(synthetic) -> list[tuple[str, dict, tuple[int, ...], str]]:
     for v in manifest["views"]:
         empty_mask[v["mask"]["file"]] = encode_mask_png(np.zeros((120, 160), np.uint8))
 
+    confetti = np.zeros((120, 160), np.uint16)
+    confetti.ravel()[: 600 * 2 : 2] = np.arange(1, 601)  # 600 one-pixel instances
+    many_ids = {**files, mask_key: encode_mask_png(confetti)}
+    no_depth = {k: (encode_depth_exr(np.zeros((120, 160), np.float32)) if k.startswith("depth/") else v)
+                for k, v in files.items()}
+
     pickled = io.BytesIO()
     np.save(pickled, np.array([{"evil": 1}], dtype=object), allow_pickle=True)
     npz = _zip({"points.npy": pickled.getvalue()})
@@ -349,6 +355,9 @@ def _bad_cases(synthetic) -> list[tuple[str, dict, tuple[int, ...], str]]:
         ("huge dimensions", {"files": _parts(with_view(huge), files)}, (413, 422), "pixels"),
         ("too many views", {"files": _parts(with_view(many_views), files)}, (413, 422), "views"),
         ("empty masks", {"files": _parts(manifest, empty_mask)}, (422,), "no segments"),
+        ("no valid depth", {"files": _parts(manifest, no_depth)}, (422,), "valid depth"),
+        ("too many segments", {"params": {"min_blob_pixels": "1"}, "files": _parts(manifest, many_ids)}, (413,),
+         "600"),
         ("pickled npz", {"files": _parts(seg_manifest, {"segments.npz": npz})}, (422,), "segments"),
         ("bad option value", {"params": {"bandwidth": "-1"}, "files": {"bundle": ("a.zip", zipped)}}, (422,),
          "bandwidth"),
