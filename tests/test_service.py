@@ -261,6 +261,25 @@ def test_meanshift_and_options(client, synthetic):
     assert r.status_code == 200 and _labels(r.json()) == labels
 
 
+def test_tar_bundle_and_manifest_as_file_part(client, synthetic):
+    import tarfile
+
+    _, manifest, files, labels = synthetic
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tf:
+        for name, data in {"manifest.json": json.dumps(manifest).encode(), **files}.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+    r = client.post("/correspond", files={"bundle": ("scene.tar.gz", buf.getvalue())})
+    assert r.status_code == 200, r.text
+    assert _labels(r.json()) == labels
+    parts = [("files", ("manifest.json", json.dumps(manifest).encode()))] + [("files", (k, v)) for k, v in files.items()]
+    r = client.post("/correspond", files=parts)
+    assert r.status_code == 200, r.text
+    assert _labels(r.json()) == labels
+
+
 # --------------------------------------------------------------------------- bad input
 def _bad_cases(synthetic) -> list[tuple[str, dict, tuple[int, ...], str]]:
     """(name, httpx request kwargs, allowed statuses, text the error must contain)."""
