@@ -28,6 +28,11 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     segments = extract_segments(bundle, config)
+    if segments.num_segments == 0:
+        raise ValueError(
+            "the scene has no segments: every mask is empty, or every blob is smaller than "
+            f"min_blob_pixels = {config.min_blob_pixels}"
+        )
     timings["segments"] = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
     shells = segment_shells(segments, config)

@@ -66,6 +66,8 @@ def _separated(points: np.ndarray, segment: np.ndarray, gap: float) -> np.ndarra
 
 def voxel_downsample(points: np.ndarray, segment: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """Average the points of each segment that fall in one ``cell``-sized grid cell."""
+    if points.shape[0] == 0:
+        return points.reshape(0, 3), segment[:0]
     cells = np.floor(points / cell).astype(np.int64)
     key, _ = pack_cell_keys(segment, cells)
     order = np.argsort(key)  # grouping needs no stable order, and quicksort is ~4x faster here

@@ -193,3 +193,21 @@ def test_real_sample_scene_with_reference_checkpoint():
     assert sum(s.assignment == "unfiltered_voxels" for s in result.segments) >= 1
     assert m["average_purity"] >= 97.5
     assert m["voxel_ari"] >= 0.94
+
+
+def test_scene_without_segments_is_a_clear_error():
+    bundle = sphere_scene([[0, 0, 0]], [40], cameras=2)
+    for v in bundle.views:
+        v.mask[:] = 0
+    with pytest.raises(ValueError, match="no segments"):
+        prepare(bundle)
+
+
+def test_segments_without_valid_depth_still_get_labels(model):
+    bundle = sphere_scene([[0, 0, 0]], [40], cameras=2)
+    for v in bundle.views:
+        v.depth[:] = 0
+    result = correspond(bundle, model)
+    assert [s.assignment for s in result.segments] == ["own_object", "own_object"]
+    assert len({s.object for s in result.segments}) == 2
+    assert all("no valid 3D point" in w for w in result.warnings[-2:])
