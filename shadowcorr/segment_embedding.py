@@ -110,9 +110,10 @@ def voxel_embeddings(
     voxel: np.ndarray, segment: np.ndarray, num_voxels: int, segment_vectors: np.ndarray
 ) -> np.ndarray:
     """L2-normalised mean of the vectors of the segments contributing to each voxel."""
-    dim = segment_vectors.shape[1]
-    total = np.zeros((num_voxels, dim))
-    np.add.at(total, voxel, segment_vectors[segment])
+    from scipy.sparse import csr_matrix
+
+    membership = csr_matrix((np.ones(voxel.size), (voxel, segment)), shape=(num_voxels, segment_vectors.shape[0]))
+    total = membership @ segment_vectors.astype(np.float64)
     count = np.bincount(voxel, minlength=num_voxels)[:, None]
     mean = total / np.maximum(count, 1)
     norm = np.linalg.norm(mean, axis=1, keepdims=True)

@@ -49,15 +49,35 @@ class Segments:
         return np.repeat(np.arange(self.num_segments), self.lengths)
 
 
-def _blobs(mask: np.ndarray, split: bool, min_pixels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Label image of blobs (0 = none) with per-blob instance, component and pixel count.
+@dataclass
+class Blobs:
+    """The blobs of one mask (ragged): flat pixel indices of each blob, concatenated.
 
-    Blob labels are ordered by (instance, component) and components of one instance by
-    decreasing size, so the numbering does not depend on scan order quirks.
+    Blobs are ordered by instance value, and the components of one instance by
+    decreasing size (ties: scan order), so the numbering does not depend on anything
+    but the mask.
     """
-    blob_image = np.zeros(mask.shape, dtype=np.int64)
-    instances, components, sizes = [], [], []
-    next_label = 1
+
+    pixels: np.ndarray  # (N,) int64 flat (row-major) pixel indices, blob after blob
+    lengths: np.ndarray  # (B,) pixels per blob
+    instance: np.ndarray  # (B,) mask value
+    component: np.ndarray  # (B,) index within its instance, largest first
+
+    def label_image(self, shape: tuple[int, int], labels: np.ndarray | None = None, fill: int = -1) -> np.ndarray:
+        """(H, W) image holding ``labels[b]`` (default: b) on blob b's pixels and ``fill`` elsewhere."""
+        labels = np.arange(self.lengths.size) if labels is None else np.asarray(labels)
+        image = np.full(shape[0] * shape[1], fill, dtype=np.int64)
+        image[self.pixels] = np.repeat(labels, self.lengths)
+        return image.reshape(shape)
+
+
+def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int = 50) -> Blobs:
+    """Blobs of an instance mask: each instance value cut into 8-connected components.
+
+    With ``split_components`` off, each instance value is one blob.  Blobs with fewer
+    than ``min_pixels`` pixels (at least 1) are left out.  Only the bounding window of
+    each instance is scanned, never the whole image per instance.
+    """
     values = mask
     if mask.size and int(mask.max()) >= 1 << 20:  # sparse large ids: renumber before find_objects
         ids, inverse = np.unique(mask, return_inverse=True)
@@ -65,36 +85,38 @@ def _blobs(mask: np.ndarray, split: bool, min_pixels: int) -> tuple[np.ndarray, 
         ids = ids if ids[0] == 0 else np.r_[0, ids]
     else:
         ids = np.arange(int(mask.max(initial=0)) + 1)
-    slices = ndimage.find_objects(values)
-    for label, window in enumerate(slices, start=1):  # one iteration per instance value, not per pixel
+    width = mask.shape[1]
+    pixels, lengths, instances, components = [], [], [], []
+    for label, window in enumerate(ndimage.find_objects(values), start=1):  # per instance value, not per pixel
         if window is None:
             continue
-        inst = ids[label]
         sub = values[window] == label
-        if split:
+        if split_components:
             labels, n = ndimage.label(sub, structure=_EIGHT_CONNECTED)
-            counts = np.bincount(labels.ravel(), minlength=n + 1)[1:]
         else:
-            labels, n, counts = sub.astype(np.int64), 1, np.array([int(sub.sum())])
+            labels, n = sub.astype(np.int32), 1
+        rows, cols = np.nonzero(labels)
+        blob = labels[rows, cols]
+        counts = np.bincount(blob, minlength=n + 1)[1:]
         order = np.argsort(-counts, kind="stable")
         keep = order[counts[order] >= max(min_pixels, 1)]
         if keep.size == 0:
             continue
-        remap = np.zeros(n + 1, dtype=np.int64)
-        remap[keep + 1] = np.arange(next_label, next_label + keep.size)
-        target = blob_image[window]
-        new = remap[labels]
-        target[new > 0] = new[new > 0]
-        instances.extend([int(inst)] * keep.size)
-        components.extend(range(keep.size))
-        sizes.extend(counts[keep].tolist())
-        next_label += keep.size
-    return (
-        blob_image,
-        np.asarray(instances, dtype=np.int64),
-        np.asarray(components, dtype=np.int64),
-        np.asarray(sizes, dtype=np.int64),
-    )
+        rank = np.full(n + 1, -1, dtype=np.int64)
+        rank[keep + 1] = np.arange(keep.size)
+        r = rank[blob]
+        chosen = r >= 0
+        by_rank = np.argsort(r[chosen], kind="stable")  # raster order within each blob
+        flat = (rows[chosen] + window[0].start) * width + (cols[chosen] + window[1].start)
+        pixels.append(flat[by_rank].astype(np.int64))
+        lengths.append(counts[keep])
+        instances.append(np.full(keep.size, ids[label], dtype=np.int64))
+        components.append(np.arange(keep.size, dtype=np.int64))
+    if not lengths:
+        empty = np.zeros(0, dtype=np.int64)
+        return Blobs(empty, empty, empty, empty)
+    return Blobs(np.concatenate(pixels), np.concatenate(lengths).astype(np.int64),
+                 np.concatenate(instances), np.concatenate(components))
 
 
 def _back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -116,17 +138,16 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
     points, lengths, view_idx, instances, components, pixels, centers, axes, truth = ([] for _ in range(9))
     max_depth_bundle = config.max_depth / scale
     for vi, view in enumerate(bundle.views):
-        depth = view.depth
-        valid = np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle)
-        blob_image, inst, comp, sizes = _blobs(view.mask, config.split_components, config.min_blob_pixels)
-        if inst.size == 0:
+        blobs = find_blobs(view.mask, config.split_components, config.min_blob_pixels)
+        if blobs.lengths.size == 0:
             continue
-        on = (blob_image > 0) & valid
-        vv, uu = np.nonzero(on)
-        blob_of_pixel = blob_image[vv, uu] - 1
-        order = np.argsort(blob_of_pixel, kind="stable")  # keeps pixels in raster order within a blob
-        vv, uu, blob_of_pixel = vv[order], uu[order], blob_of_pixel[order]
-        pts = _back_project(view, vv.astype(np.float64), uu.astype(np.float64), depth[vv, uu].astype(np.float64))
+        d = view.depth.ravel()[blobs.pixels]
+        valid = np.isfinite(d) & (d > 0) & (d <= max_depth_bundle)
+        blob_of_pixel = np.repeat(np.arange(blobs.lengths.size), blobs.lengths)[valid]
+        flat = blobs.pixels[valid]
+        vv, uu = np.divmod(flat, view.mask.shape[1])
+        pts = _back_project(view, vv.astype(np.float64), uu.astype(np.float64), d[valid].astype(np.float64))
+        inst, comp, sizes = blobs.instance, blobs.component, blobs.lengths
         points.append(pts * scale)
         lengths.append(np.bincount(blob_of_pixel, minlength=inst.size))
         view_idx.append(np.full(inst.size, vi))

@@ -162,42 +162,68 @@ def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrCo
     eta = -sin_a * p1 + cos_a * p2
 
     # (u0, v0) is the projection of the mean, i.e. (0, 0) here; w, h the bounding box.
-    def extent(values: np.ndarray) -> np.ndarray:
-        hi = np.full(s, -np.inf)
-        lo = np.full(s, np.inf)
-        np.maximum.at(hi, seg, values)
-        np.minimum.at(lo, seg, values)
-        return np.where(np.isfinite(hi - lo), hi - lo, 0.0)
-
-    w, h = extent(xi), extent(eta)
+    w, h = segment_range(xi, seg, s), segment_range(eta, seg, s)
     rho = np.sqrt((2 * xi / np.maximum(w[seg], 1e-9)) ** 2 + (2 * eta / np.maximum(h[seg], 1e-9)) ** 2)
     d_surf = config.projection_factor * shells.axis_lengths[:, 1]
     n_max = np.maximum(np.floor(d_surf / v), 1).astype(np.int64)
     layers = np.where(rho < 1, np.floor(n_max[seg] * (1 - rho)), 0).astype(np.int64)
 
-    # Surface points (layer 0) plus layer L = 1..n of each point, L*v along the direction.
+    # Surface points (layer 0) plus layer L = 1..n of each point, L*v along the direction,
+    # in voxel units (one layer = one voxel along the direction).  Each point fills the
+    # voxel it rounds to if it lies within `chebyshev_fraction` of its centre on every
+    # axis.  Axis by axis on flat arrays: about twice as fast as on (N, 3) blocks.
     reps = layers + 1
     src = np.repeat(np.arange(pts.shape[0]), reps)
-    first = np.repeat(np.cumsum(reps) - reps, reps)
-    level = np.arange(src.size) - first
-    all_pts = pts[src] + (level * v)[:, None] * direction[seg[src]]
+    level = np.arange(src.size) - np.repeat(np.cumsum(reps) - reps, reps)
     all_seg = seg[src]
-
-    cell = np.round(all_pts / v).astype(np.int64)
-    inside = np.all(np.abs(all_pts - cell * v) <= config.chebyshev_fraction * v, axis=1)
-    key, unpack = pack_cell_keys(all_seg[inside], cell[inside])
+    inside = np.ones(src.size, dtype=bool)
+    cell_axes = []
+    for axis in range(3):
+        coord = (pts[:, axis] / v)[src] + level * direction[:, axis][all_seg]
+        nearest = np.rint(coord)
+        inside &= np.abs(coord - nearest) <= config.chebyshev_fraction
+        cell_axes.append(nearest)
+    cell = np.stack([c[inside] for c in cell_axes], axis=1).astype(np.int64)
+    key, unpack = pack_cell_keys(all_seg[inside], cell)
     vox_seg, vox_cell = unpack(unique_keys(key))
 
     # Confidence: distance from the voxel centre to the segment's nearest surface point.
     centres = vox_cell * v
     gap = _separation_gap(pts, centres)
     dist, _ = cKDTree(_separated(pts, seg, gap)).query(_separated(centres, vox_seg, gap), k=1, workers=-1)
-    max_d = np.zeros(s)
-    np.maximum.at(max_d, vox_seg, dist)
+    max_d = segment_max(dist, vox_seg, s)
     d_hat = dist / (config.distance_margin * np.maximum(max_d[vox_seg], 1e-12))
     phi = beta_profile(d_hat, config.beta_alpha, config.beta_beta)
     keep = phi > config.min_confidence
     return ShadowVoxels(vox_seg[keep], vox_cell[keep], phi[keep])
+
+
+def _segment_starts(segment: np.ndarray, num_segments: int) -> np.ndarray:
+    """Start of each segment's run in a segment-sorted array (empty runs: start of the next)."""
+    return np.searchsorted(segment, np.arange(num_segments))
+
+
+def segment_max(values: np.ndarray, segment: np.ndarray, num_segments: int, empty: float = 0.0) -> np.ndarray:
+    """Per-segment maximum of ``values`` (rows sorted by ``segment``); ``empty`` for empty segments.
+
+    One ``reduceat`` over the sorted runs: many times faster than ``np.maximum.at``.
+    """
+    out = np.full((num_segments,) + values.shape[1:], empty, dtype=np.float64)
+    count = np.bincount(segment, minlength=num_segments)
+    if values.shape[0]:
+        nonempty = count > 0
+        out[nonempty] = np.maximum.reduceat(values, _segment_starts(segment, num_segments)[nonempty], axis=0)
+    return out
+
+
+def segment_min(values: np.ndarray, segment: np.ndarray, num_segments: int, empty: float = 0.0) -> np.ndarray:
+    """Per-segment minimum, as :func:`segment_max`."""
+    return -segment_max(-values, segment, num_segments, -empty)
+
+
+def segment_range(values: np.ndarray, segment: np.ndarray, num_segments: int) -> np.ndarray:
+    """Per-segment ``max - min`` (0 for empty segments)."""
+    return segment_max(values, segment, num_segments) - segment_min(values, segment, num_segments)
 
 
 def beta_profile(x: np.ndarray, alpha: float, beta: float) -> np.ndarray:

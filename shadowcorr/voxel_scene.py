@@ -21,7 +21,7 @@ from .config import ShadowCorrConfig
 from .grid_keys import pack_cell_keys, unique_keys
 from .segment_embedding import cooccurrence, train_segment_embeddings, voxel_embeddings
 from .segments import Segments
-from .shadows import ShadowVoxels, SegmentShells
+from .shadows import SegmentShells, ShadowVoxels, segment_max, segment_min
 
 
 @dataclass
@@ -131,11 +131,8 @@ def build_voxel_scene(
         features[:, 1:4] = (pos - (lo + hi) / 2.0) / half
         features[:, 4:] = emb
 
-    bbox_min = np.full((s, 3), np.nan)
-    bbox_max = np.full((s, 3), np.nan)
-    if shells.points.shape[0]:
-        np.fmin.at(bbox_min, shells.segment, shells.points)
-        np.fmax.at(bbox_max, shells.segment, shells.points)
+    bbox_min = segment_min(shells.points, shells.segment, s, empty=np.nan)
+    bbox_max = segment_max(shells.points, shells.segment, s, empty=np.nan)
     timings_ms["features"] = (time.perf_counter() - t0) * 1e3
 
     return VoxelScene(

@@ -27,7 +27,7 @@ from shadowcorr.render import (
 from shadowcorr.render.maps import MapScene, choose_frame, render_maps
 from shadowcorr.render.palette import CORRECT, SPLIT, WARNING_STRIPES, WRONG
 from shadowcorr.result import ObjectSummary, Result, SegmentLabel
-from shadowcorr.segments import _blobs, extract_segments
+from shadowcorr.segments import extract_segments, find_blobs
 
 from .scenes import look_at, sphere_scene
 
@@ -74,9 +74,9 @@ def hand_result(bundle: SceneBundle) -> Result:
 def _blob_mask(bundle: SceneBundle, view_name: str, instance: int, component: int) -> np.ndarray:
     """The pixels of one segment, cut the way the engine cuts them."""
     view = next(v for v in bundle.views if v.name == view_name)
-    image, inst, comp, _ = _blobs(view.mask, True, 50)
-    (blob,) = np.flatnonzero((inst == instance) & (comp == component))
-    return image == blob + 1
+    blobs = find_blobs(view.mask, True, 50)
+    (blob,) = np.flatnonzero((blobs.instance == instance) & (blobs.component == component))
+    return blobs.label_image(view.mask.shape) == blob
 
 
 def _contains(bundle: SceneBundle, view: str, inst: int, comp: int, window: tuple[slice, slice]) -> bool:

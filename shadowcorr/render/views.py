@@ -1,7 +1,7 @@
 """Per-view images: shaded depth, segment masks filled in a colour, outlines and id labels.
 
 The pixels of a segment are found exactly as the engine cut them
-(``shadowcorr.segments._blobs``: 8-connected blobs per instance value, largest
+(``shadowcorr.segments.find_blobs``: 8-connected blobs per instance value, largest
 component first, blobs under ``min_blob_pixels`` ignored), so a result's
 ``(view, instance, component)`` names one blob of the mask and nothing else.
 """
@@ -14,7 +14,7 @@ from scipy import ndimage
 
 from ..bundle import View
 from ..config import ShadowCorrConfig
-from ..segments import _blobs
+from ..segments import find_blobs
 from ._draw import CORNERS, Box, Label, banner, banner_box, draw_labels, font, hazard_stripes, label_box_size
 from .palette import RGB, WARNING_STRIPES
 
@@ -73,11 +73,10 @@ def segment_index_image(view: View, lookup: dict[tuple[int, int], int], engine: 
     ``lookup`` maps ``(instance, component)`` of this view to the result's segment index;
     blobs the result does not list stay -1 (undrawn).
     """
-    blob_image, instances, components, _ = _blobs(np.asarray(view.mask), engine.split_components, engine.min_blob_pixels)
-    seg_of_blob = np.full(instances.size + 1, -1, dtype=np.int64)  # slot 0: background
-    for b, key in enumerate(zip(instances.tolist(), components.tolist()), start=1):  # one per blob, not per pixel
-        seg_of_blob[b] = lookup.get(key, -1)
-    return seg_of_blob[blob_image]
+    mask = np.asarray(view.mask)
+    blobs = find_blobs(mask, engine.split_components, engine.min_blob_pixels)
+    seg_of_blob = [lookup.get(key, -1) for key in zip(blobs.instance.tolist(), blobs.component.tolist())]  # per blob
+    return blobs.label_image(mask.shape, np.asarray(seg_of_blob, dtype=np.int64))
 
 
 def edge_band(seg_image: np.ndarray, width: int) -> np.ndarray:
