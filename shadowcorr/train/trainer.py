@@ -270,7 +270,7 @@ class Trainer:
                 "graph": {"weight": cfg.loss.w_graph, "k": cfg.loss.graph_k, "scale": cfg.loss.graph_scale,
                           "form": "-log sigmoid(scale * cos) on same-instance k-NN edges"},
             },  # fmt: skip
-            "target": "per-voxel object with the highest summed segment confidence (assign.voxel_truth)",
+            "target": "per-voxel object with the highest summed segment confidence (assignment.voxel_truth)",
             "optimizer": "Adam",
             "lr": cfg.lr,
             "batch": f"{cfg.batch_scenes} scene(s) per step",
