@@ -17,15 +17,19 @@ def pack_cell_keys(group: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, ca
     if cells.shape[0] == 0:
         lo = np.zeros(3, dtype=np.int64)
         return np.zeros(0, dtype=np.int64), _unpacker(lo, [1, 1, 1])
-    lo = cells.min(axis=0)
-    span = cells.max(axis=0) - lo + 1
+    # Column by column: reductions and shifts on contiguous 1-D arrays are several times
+    # faster than along axis 0 of an (N, 3) array.
+    cols = [np.ascontiguousarray(cells[:, i]) for i in range(3)]
+    lo = np.array([c.min() for c in cols], dtype=np.int64)
+    span = [int(c.max()) - int(m) + 1 for c, m in zip(cols, lo)]
     bits = [max(int(s - 1).bit_length(), 1) for s in span]
     group_bits = max(int(group.max(initial=0)).bit_length(), 1)
     if group_bits + sum(bits) > 63:
         raise ValueError("cell coordinates span too large a range to pack into 64-bit keys")
-    rel = cells - lo
     key = group << (bits[0] + bits[1] + bits[2])
-    key = key | (rel[:, 0] << (bits[1] + bits[2])) | (rel[:, 1] << bits[2]) | rel[:, 2]
+    key |= (cols[0] - lo[0]) << (bits[1] + bits[2])
+    key |= (cols[1] - lo[1]) << bits[2]
+    key |= cols[2] - lo[2]
     return key, _unpacker(lo, bits)
 
 
