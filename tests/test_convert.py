@@ -23,9 +23,8 @@ from shadowcorr.convert import (
 from shadowcorr.errors import BundleError
 from shadowcorr.io import images, load_bundle
 
-UE_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ue_sample"
-if not UE_DIR.is_dir():  # the repo may be checked out elsewhere; the shared data has one home
-    UE_DIR = Path("/work/shared/data/ue_sample")
+# The sample scene ships with the repository (a copy of ../shared/data/ue_sample).
+UE_DIR = Path(__file__).resolve().parents[1] / "examples" / "ue_sample"
 needs_ue = pytest.mark.skipif(not (UE_DIR / "cameras_opencv.json").is_file(), reason="UE sample data not available")
 
 

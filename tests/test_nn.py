@@ -18,6 +18,7 @@ from shadowcorr.nn import (
     ShadowCorrNet,
     SubmanifoldConv3d,
     VoxelHash,
+    convert_checkpoint,
     kernel_offsets,
     knn_on_grid,
     knn_within_scene,
@@ -29,7 +30,7 @@ from shadowcorr.nn import (
 )
 from shadowcorr.nn import local_attention as la_mod
 
-REFERENCE_PTH = Path("/work/shared/reference/shadowcorr_best.pth")
+REFERENCE_PTH = Path(__file__).resolve().parents[2] / "shared" / "reference" / "shadowcorr_best.pth"
 needs_reference = pytest.mark.skipif(not REFERENCE_PTH.is_file(), reason="reference checkpoint not available")
 
 
@@ -354,20 +355,28 @@ def test_net_config_validation():
 
 # --------------------------------------------------------------------------- files
 @needs_reference
-def test_reference_checkpoint_and_packaged_default_agree():
+def test_reference_checkpoint_and_its_converted_copy_agree(tmp_path):
     ref = load_model(REFERENCE_PTH)
-    default = load_model()
-    assert default.name == "shadowcorr-reference" and ref.name == default.name
-    assert default.card.voxel_size == 8 and default.card.units == "cm"
-    assert "reference weights" in default.card.notes
-    assert len(default.sha256) == 64 and default.sha256 != ref.sha256
-    assert not default.net.training
+    convert_checkpoint(REFERENCE_PTH, tmp_path / "ref.safetensors")
+    converted = load_model(tmp_path / "ref.safetensors")
+    assert converted.name == "shadowcorr-reference" and ref.name == converted.name
+    assert converted.card.voxel_size == 8 and converted.card.units == "cm"
+    assert "reference weights" in converted.card.notes
+    assert len(converted.sha256) == 64 and converted.sha256 != ref.sha256
+    assert not converted.net.training
     feats, idx = two_scenes(np.random.default_rng(4))
     a = run_batched(ref, feats, idx)
-    b = run_batched(default, feats, idx)
+    b = run_batched(converted, feats, idx)
     for x, y in zip(a, b):
         assert x.dtype == np.float32 and x.shape[1] == 32
         np.testing.assert_array_equal(x, y)
+
+
+def test_packaged_default_is_a_trained_model_with_its_card():
+    default = load_model()
+    assert default.card.voxel_size == 8 and default.card.units == "cm"
+    assert default.card.training and default.card.metrics
+    assert not default.net.training
 
 
 def test_packaged_default_exists_and_carries_license():
