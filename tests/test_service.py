@@ -459,8 +459,10 @@ def test_killed_worker_fails_its_request_and_is_replaced(client, server, sample,
 
 def test_client_disconnect_cancels_the_request(client, server, sample):
     path, *_ = sample
+    # The sample scene needs several hundred ms of CPU; the client gives up after 0.1 s of waiting.
     with pytest.raises(httpx.ReadTimeout):
-        httpx.post(server.url + "/correspond", files={"bundle": ("scene.zip", path.read_bytes())}, timeout=1.0)
+        httpx.post(server.url + "/correspond", files={"bundle": ("scene.zip", path.read_bytes())},
+                   timeout=httpx.Timeout(30.0, read=0.1))
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
         samples = _metric_samples(client.get("/metrics").text)

@@ -86,8 +86,13 @@ def test_overload_gets_503_and_slow_request_gets_504(server, tiny):
     from shadowcorr.convert.ue import load_ue_scene
     from shadowcorr.io import bundle_to_parts
 
-    # All 8 cameras of the sample: several seconds of work, far beyond the 1 s timeout.
-    manifest, files = bundle_to_parts(load_ue_scene(SAMPLE_DIR, 2001, range(8)))
+    # All 8 cameras of the sample, each view twice (16 views): seconds of work, far beyond
+    # the 1 s timeout plus the 1 s a timed-out job may still run before its worker is killed.
+    import dataclasses
+
+    bundle = load_ue_scene(SAMPLE_DIR, 2001, range(8))
+    bundle.views += [dataclasses.replace(v, name=v.name + "_again") for v in bundle.views]
+    manifest, files = bundle_to_parts(bundle)
     parts = [("manifest", (None, json.dumps(manifest).encode()))] + [("f", (k, v)) for k, v in files.items()]
     ok = {"Authorization": f"Bearer {TOKEN}"}
     result: dict = {}

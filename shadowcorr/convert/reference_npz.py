@@ -41,6 +41,7 @@ import numpy as np
 
 from ..bundle import PointSegments, SceneBundle, View, pose_to_opencv
 from ..io.bundle_files import write_bundle
+from ..poses import look_at_pose
 
 __all__ = ["read_reference_npz", "convert_reference_npz"]
 
@@ -175,22 +176,6 @@ def _per_camera(
     )
 
 
-def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """OpenCV camera-to-world pose at ``centre`` looking at ``target`` (z-up world)."""
-    z = target - centre
-    norm = np.linalg.norm(z)
-    z = z / norm if norm > 0 else np.array([0.0, 0.0, -1.0])
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    if np.linalg.norm(x) < 1e-9:  # looking straight up/down: any horizontal right vector works
-        x = np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, y, z], axis=1)
-    pose[:3, 3] = centre
-    return pose
-
-
 def read_reference_npz(
     path: str | Path,
     *,
@@ -267,7 +252,7 @@ def read_reference_npz(
         for c in cam_ids:
             mine = [segs[i] for i in np.flatnonzero(seg_cam == c) if len(segs[i])]
             target = np.concatenate(mine or all_pts).mean(axis=0)
-            poses[int(c)] = _look_at(centres[int(c)], target)
+            poses[int(c)] = look_at_pose(centres[int(c)], target)
         warnings.append("camera orientation not in the file: poses look from each camera centre at its segments")
     for c, m in poses.items():
         if m.shape != (4, 4):

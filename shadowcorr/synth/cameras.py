@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..poses import look_at_pose
+
 
 @dataclass
 class Camera:
@@ -51,18 +53,6 @@ class Camera:
         u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
         d = np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
         return d @ self.pose[:3, :3].T
-
-
-def look_at_pose(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """Camera-to-world (OpenCV) pose at ``eye`` looking at ``target`` with no roll."""
-    z = np.asarray(target, dtype=np.float64) - np.asarray(eye, dtype=np.float64)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)  # right = forward x up (z up world, y down camera)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)  # down
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = x, y, z, eye
-    return pose
 
 
 def ring_azimuths(n: int, arc_deg: float, start_deg: float) -> np.ndarray:
