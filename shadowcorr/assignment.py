@@ -14,7 +14,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 
 from .clustering import majority_vote, mean_shift, merge_small_clusters
 from .config import ShadowCorrConfig
@@ -45,7 +45,7 @@ def _label_orphans(scene: VoxelScene, voxel_label: np.ndarray, seg_label: np.nda
         return
     next_label = int(max(voxel_label.max(initial=-1), seg_label.max(initial=-1))) + 1
     if scene.num_voxels:
-        tree = cKDTree(scene.voxel_index.astype(np.float64))
+        tree = KDTree(scene.voxel_index.astype(np.float64))
         pick = np.isin(scene.orphan_segment, orphans)
         if pick.any():
             gap, nearest = tree.query(scene.orphan_index[pick].astype(np.float64), k=1)
@@ -59,7 +59,8 @@ def _label_orphans(scene: VoxelScene, voxel_label: np.ndarray, seg_label: np.nda
         for o in orphans[seg_label[orphans] < 0]:  # a handful at most: per segment, not per point
             centroid = scene.segment_centroid[o]
             if not np.isin(o, scene.orphan_segment) and np.all(np.isfinite(centroid)):
-                gap, nearest = tree.query(centroid / scene.config.voxel_size, k=1)
+                gap, nearest = tree.query(np.atleast_2d(centroid / scene.config.voxel_size), k=1)
+                gap, nearest = float(gap[0]), int(nearest[0])
                 if gap <= max_gap:
                     seg_label[o], support[o], how[o] = voxel_label[nearest], 0.0, "nearest_object"
                     continue
