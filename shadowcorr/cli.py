@@ -205,23 +205,19 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(p)
     p.set_defaults(func=cmd_eval)
 
-    for module, adder in (("shadowcorr.synth.cli", "add_synth_parser"), ("shadowcorr.train.cli", "add_train_parser"),
-                          ("shadowcorr.render.cli", "add_render_parser"), ("service.cli", "add_serve_parser")):
-        _optional_subcommand(sub, module, adder)
+    for command in _plugin_commands():
+        command.load()(sub)
     return parser
 
 
-def _optional_subcommand(sub: argparse._SubParsersAction, module: str, adder: str) -> None:
-    """Subcommands whose module is present (the service is not needed to use the library)."""
-    import importlib
+def _plugin_commands():
+    """Subcommands registered in the ``shadowcorr.commands`` entry-point group (see pyproject.toml).
 
-    try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name and (module == exc.name or module.startswith(exc.name + ".")):
-            return
-        raise
-    getattr(mod, adder)(sub)
+    The service registers ``serve`` this way, so the library's CLI does not depend on it.
+    """
+    from importlib.metadata import entry_points
+
+    return sorted(entry_points(group="shadowcorr.commands"), key=lambda ep: ep.name)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
