@@ -22,7 +22,7 @@ import torch
 from shadowcorr import correspond, load_bundle, load_model
 from shadowcorr.convert import convert_ue, load_ue_scene
 
-SAMPLE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ue_sample"
+SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "ue_sample"  # ships with the repository
 
 
 def main() -> int:

@@ -126,13 +126,14 @@ def assign(
     _label_orphans(scene, voxel_label, seg_label, support, how, config.orphan_max_gap)
     warnings = list(scene.warnings) + _orphan_warnings(scene, how)
 
-    # Objects are numbered 0..K-1 in order of their first segment.
+    # Objects are numbered 0..K-1 in order of their first segment; clusters no segment
+    # chose map to -1.
     _, first = np.unique(seg_label, return_index=True)
     used = seg_label[np.sort(first)]
-    object_of_cluster = {int(c): i for i, c in enumerate(used)}
-    seg_object = np.array([object_of_cluster[int(c)] for c in seg_label], dtype=np.int64)
-    voxel_object = np.array([object_of_cluster.get(int(c), -1) for c in np.unique(voxel_label)])
-    voxel_object = voxel_object[np.searchsorted(np.unique(voxel_label), voxel_label)] if voxel_label.size else voxel_label
+    object_of_cluster = np.full(int(max(seg_label.max(initial=-1), voxel_label.max(initial=-1))) + 2, -1, np.int64)
+    object_of_cluster[used] = np.arange(used.size)
+    seg_object = object_of_cluster[seg_label]
+    voxel_object = object_of_cluster[voxel_label]  # label -1 reads the last slot, which stays -1
 
     segments = [
         SegmentLabel(

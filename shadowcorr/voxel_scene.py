@@ -13,6 +13,7 @@ metrics only and no feature is computed from it.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -84,10 +85,7 @@ def build_voxel_scene(
     timings_ms: dict[str, float] | None = None,
 ) -> VoxelScene:
     """Steps 7-9: consensus filter, segment-id embeddings, network features."""
-    import time
-
     s = segments.num_segments
-    warnings: list[str] = []
     timings_ms = dict(timings_ms or {})
     t0 = time.perf_counter()
 
@@ -157,6 +155,5 @@ def build_voxel_scene(
         member_confidence=member_conf,
         orphan_segment=shadows.segment[orphan_member],
         orphan_index=shadows.cell[orphan_member],
-        warnings=warnings,
         timings_ms=timings_ms,
     )

@@ -41,12 +41,10 @@ from clients import (
 from clients.cli import main as cli_main
 from shadowcorr.result import Result
 
+from .paths import REPO
+from .paths import SAMPLE_DIR as UE_SAMPLE
 from .scenes import sphere_scene
 
-REPO = Path(__file__).resolve().parents[1]
-# The sample scene ships in the repository; the shared data folder is the fallback.
-UE_SAMPLE = next((d for d in (REPO / "examples" / "ue_sample", REPO.parent / "shared" / "data" / "ue_sample")
-                  if (d / "Set2001_Depth_0.exr").exists()), REPO / "examples" / "ue_sample")
 TOKEN = "test-token-not-secret"
 SYNTH_SCENES = 5
 

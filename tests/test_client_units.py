@@ -12,7 +12,6 @@ import math
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import httpx
 import numpy as np
@@ -36,12 +35,10 @@ from clients.records import RecordWriter, UploadRecord, format_summary, percenti
 from clients.retry import is_retryable_exception
 from clients.upload import archive_content_type
 
+from .paths import REPO
+from .paths import SAMPLE_DIR as UE_SAMPLE
 from .scenes import sphere_scene
 
-REPO = Path(__file__).resolve().parents[1]
-# The sample scene ships in the repository; the shared data folder is the fallback.
-UE_SAMPLE = next((d for d in (REPO / "examples" / "ue_sample", REPO.parent / "shared" / "data" / "ue_sample")
-                  if (d / "Set2001_Depth_0.exr").exists()), REPO / "examples" / "ue_sample")
 
 
 def small_scene(n: int = 2, seed: int = 0):

@@ -23,8 +23,9 @@ from shadowcorr.convert import (
 from shadowcorr.errors import BundleError
 from shadowcorr.io import images, load_bundle
 
-# The sample scene ships with the repository (a copy of ../shared/data/ue_sample).
-UE_DIR = Path(__file__).resolve().parents[1] / "examples" / "ue_sample"
+from .paths import SAMPLE_DIR
+
+UE_DIR = SAMPLE_DIR
 needs_ue = pytest.mark.skipif(not (UE_DIR / "cameras_opencv.json").is_file(), reason="UE sample data not available")
 
 

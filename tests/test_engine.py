@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,11 +12,10 @@ from shadowcorr.segment_embedding import cooccurrence, segment_embedding_loss, t
 from shadowcorr.segments import extract_segments
 from shadowcorr.shadows import beta_profile, cast_shadows, segment_shells, voxel_downsample
 
+from .paths import REFERENCE_CHECKPOINT as REFERENCE
+from .paths import SAMPLE_DIR as SAMPLE
 from .scenes import sphere_scene
 
-ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT / "examples" / "ue_sample"
-REFERENCE = ROOT.parent / "shared" / "reference" / "shadowcorr_best.pth"
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,9 @@ from shadowcorr.nn import (
 )
 from shadowcorr.nn import local_attention as la_mod
 
-REFERENCE_PTH = Path(__file__).resolve().parents[2] / "shared" / "reference" / "shadowcorr_best.pth"
+from .paths import REFERENCE_CHECKPOINT
+
+REFERENCE_PTH = REFERENCE_CHECKPOINT
 needs_reference = pytest.mark.skipif(not REFERENCE_PTH.is_file(), reason="reference checkpoint not available")
 
 

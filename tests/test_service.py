@@ -15,7 +15,6 @@ import signal
 import threading
 import time
 import zipfile
-from pathlib import Path
 
 import httpx
 import numpy as np
@@ -24,12 +23,8 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from service.testing import ServerProcess
 
-_ROOT = Path(__file__).resolve().parents[1]
-# The sample travels with the repo (examples/); the shared data folder is its other home.
-SAMPLE_DIR = next(
-    (d for d in (_ROOT / "examples" / "ue_sample", _ROOT.parent / "shared" / "data" / "ue_sample") if d.is_dir()),
-    _ROOT / "examples" / "ue_sample",
-)
+from .paths import SAMPLE_DIR
+
 SAMPLE_CAMERAS = (0, 2, 4, 6)
 MiB = 1024 * 1024
 BODY_LIMIT = 8 * MiB
@@ -148,6 +143,19 @@ def _worker_busy(server: ServerProcess, timeout: float = 60.0):
                 return p
         time.sleep(0.02)
     raise AssertionError("no worker became busy")
+
+
+def _post_in_background(server: ServerProcess, path) -> tuple[threading.Thread, dict]:
+    """POST the bundle archive at ``path`` from a thread; the response lands in ``result["r"]``."""
+    result: dict = {}
+
+    def post() -> None:
+        with httpx.Client(base_url=server.url, timeout=180.0) as c:
+            result["r"] = c.post("/correspond", files={"bundle": ("scene.zip", path.read_bytes())})
+
+    thread = threading.Thread(target=post)
+    thread.start()
+    return thread, result
 
 
 # --------------------------------------------------------------------------- basics
@@ -425,14 +433,7 @@ def test_bad_inputs_get_4xx_naming_the_problem(client, server, synthetic):
 def test_killed_worker_fails_its_request_and_is_replaced(client, server, sample, synthetic):
     path, *_ = sample
     zipped, _, _, labels = synthetic
-    result: dict = {}
-
-    def post() -> None:
-        with httpx.Client(base_url=server.url, timeout=180.0) as c:
-            result["r"] = c.post("/correspond", files={"bundle": ("scene.zip", path.read_bytes())})
-
-    t = threading.Thread(target=post)
-    t.start()
+    t, result = _post_in_background(server, path)
     victim = _worker_busy(server)
     victim.send_signal(signal.SIGKILL)
     t.join(180)
@@ -477,14 +478,7 @@ def test_client_disconnect_cancels_the_request(client, server, sample):
 def test_graceful_shutdown_drains_in_flight_requests(server, sample):
     """Last test of the module: SIGTERM during a request; the request still completes."""
     path, _, _, local = sample
-    result: dict = {}
-
-    def post() -> None:
-        with httpx.Client(base_url=server.url, timeout=180.0) as c:
-            result["r"] = c.post("/correspond", files={"bundle": ("scene.zip", path.read_bytes())})
-
-    t = threading.Thread(target=post)
-    t.start()
+    t, result = _post_in_background(server, path)
     _worker_busy(server)
     server.proc.send_signal(signal.SIGTERM)
     t.join(180)

@@ -8,19 +8,14 @@ from __future__ import annotations
 import json
 import threading
 import time
-from pathlib import Path
 
 import httpx
 import pytest
 
 from service.testing import ServerProcess
 
-_ROOT = Path(__file__).resolve().parents[1]
-# The sample travels with the repo (examples/); the shared data folder is its other home.
-SAMPLE_DIR = next(
-    (d for d in (_ROOT / "examples" / "ue_sample", _ROOT.parent / "shared" / "data" / "ue_sample") if d.is_dir()),
-    _ROOT / "examples" / "ue_sample",
-)
+from .paths import SAMPLE_DIR
+
 TOKEN = "s3cret-token-for-tests"
 TIMEOUT_S = 1.0
 
