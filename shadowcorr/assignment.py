@@ -17,9 +17,11 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from .clustering import majority_vote, mean_shift, merge_small_clusters
-from .config import ShadowCorrConfig
+from .config import NETWORK_METHODS, ShadowCorrConfig
+from .grouping import SegmentGraph, agglomerate, link_components, segment_confidence
 from .metrics import segment_metrics, voxel_ari
 from .result import ModelInfo, ObjectSummary, Result, SegmentLabel
+from .volume_evidence import volume_pairs
 from .voxel_scene import VoxelScene
 
 
@@ -29,6 +31,39 @@ def cluster_voxels(embeddings: np.ndarray, bandwidth: float, min_cluster_size: i
         return np.zeros(0, dtype=np.int64)
     labels, _ = mean_shift(np.ascontiguousarray(embeddings, dtype=np.float32), bandwidth)
     return merge_small_clusters(embeddings, labels, min_size=min_cluster_size)
+
+
+def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: ShadowCorrConfig
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Group label and confidence of every segment from the evidence between segments.
+
+    ``projection`` links segments by cross-view landings alone; ``fused`` adds the network's
+    volumetric evidence (``embeddings``) and resolves both by signed average linkage.
+    """
+    if scene.surface is None:
+        raise ValueError(f"method {config.method!r} needs a scene prepared with method {config.method!r} "
+                         "(its cross-view surface evidence is missing)")
+    s = scene.num_segments
+    none = np.zeros(0, dtype=np.int64)
+    volume = (none, none, np.zeros(0), np.zeros(0))
+    if config.method == "fused":
+        volume = volume_pairs(scene, embeddings, config)
+    graph = SegmentGraph(scene.segment_view, scene.segment_instance, scene.surface, *volume)
+    if config.method == "projection":
+        labels = link_components(scene.surface, scene.segment_view, config)
+    else:
+        labels = agglomerate(graph, config)
+    return labels[:s], segment_confidence(graph, labels, config)
+
+
+def _strongest_member_label(scene: VoxelScene, seg_label: np.ndarray) -> np.ndarray:
+    """Each kept voxel takes the label of the segment giving it the most confidence (-1 if none)."""
+    out = np.full(scene.num_voxels, -1, dtype=np.int64)
+    if scene.member_voxel.size:
+        order = np.lexsort((-scene.member_confidence, scene.member_voxel))
+        first = order[np.r_[True, scene.member_voxel[order][1:] != scene.member_voxel[order][:-1]]]
+        out[scene.member_voxel[first]] = seg_label[scene.member_segment[first]]
+    return out
 
 
 def _label_orphans(scene: VoxelScene, voxel_label: np.ndarray, seg_label: np.ndarray, support: np.ndarray,
@@ -112,19 +147,28 @@ def assign(
     """
     config = config or scene.config
     timings = dict(scene.timings_ms)
-    t0 = time.perf_counter()
-    bandwidth = config.bandwidth if config.method == "shadowcorr" else config.baseline_bandwidth
-    voxel_label = cluster_voxels(np.asarray(embeddings), bandwidth, config.min_cluster_size)
-    timings["clustering"] = (time.perf_counter() - t0) * 1e3
-
-    t0 = time.perf_counter()
     s = scene.num_segments
-    seg_label, support = majority_vote(voxel_label[scene.member_voxel], scene.member_segment, s)
-    seg_label = seg_label.astype(np.int64)
-    support = support.astype(np.float64)
-    how = ["vote"] * s
-    _label_orphans(scene, voxel_label, seg_label, support, how, config.orphan_max_gap)
-    warnings = list(scene.warnings) + _orphan_warnings(scene, how)
+    if config.method in ("projection", "fused"):
+        t0 = time.perf_counter()
+        seg_label, support = group_by_evidence(scene, embeddings, config)
+        voxel_label = _strongest_member_label(scene, seg_label)
+        how = ["evidence"] * s
+        warnings = list(scene.warnings)
+        timings["grouping"] = (time.perf_counter() - t0) * 1e3
+        t0 = time.perf_counter()
+    else:
+        t0 = time.perf_counter()
+        bandwidth = config.bandwidth if config.method == "shadowcorr" else config.baseline_bandwidth
+        voxel_label = cluster_voxels(np.asarray(embeddings), bandwidth, config.min_cluster_size)
+        timings["clustering"] = (time.perf_counter() - t0) * 1e3
+
+        t0 = time.perf_counter()
+        seg_label, support = majority_vote(voxel_label[scene.member_voxel], scene.member_segment, s)
+        seg_label = seg_label.astype(np.int64)
+        support = support.astype(np.float64)
+        how = ["vote"] * s
+        _label_orphans(scene, voxel_label, seg_label, support, how, config.orphan_max_gap)
+        warnings = list(scene.warnings) + _orphan_warnings(scene, how)
 
     # Objects are numbered 0..K-1 in order of their first segment; clusters no segment
     # chose map to -1.
@@ -161,7 +205,7 @@ def assign(
         method=config.method,
         segments=segments,
         objects=objects,
-        model=model if config.method == "shadowcorr" else None,
+        model=model if config.method in NETWORK_METHODS else None,
         timings_ms={k: round(v, 3) for k, v in timings.items()},
         warnings=warnings,
         metrics=result_metrics,

@@ -12,6 +12,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+#: The methods, and those that run the network.
+METHODS = ("shadowcorr", "meanshift", "projection", "fused")
+NETWORK_METHODS = ("shadowcorr", "fused")
+
 #: Options a remote caller may change per request without making the model's
 #: inputs inconsistent with its training (used by the HTTP service).
 REQUEST_OPTIONS = ("bandwidth", "split_components", "min_blob_pixels", "min_cluster_size")
@@ -62,10 +66,38 @@ class ShadowCorrConfig(BaseModel):
     segment_embedding_weights: Literal["row_normalised", "raw"] = "row_normalised"
     seed: int = 0
 
-    # steps 11-12: clustering
-    method: Literal["shadowcorr", "meanshift"] = Field(
-        "shadowcorr", description="'meanshift' is the paper's baseline: no network, no segment ids"
+    # which method labels the segments (see METHODS)
+    method: Literal["shadowcorr", "meanshift", "projection", "fused"] = Field(
+        "shadowcorr",
+        description="'shadowcorr': the paper's volumetric consensus (network + MeanShift); 'meanshift': the "
+        "paper's no-network baseline; 'projection': the training-free cross-view check; 'fused': "
+        "cross-view surface evidence and the network's volumetric evidence resolved together",
     )
+
+    # cross-view surface evidence (methods 'projection' and 'fused')
+    projection_samples: int = Field(1000, ge=1, description="points drawn from each segment and projected into the other views")
+    projection_depth_tolerance: float = Field(3.0, gt=0, description="a projected point is visible when its depth "
+                                              "agrees with the view's depth within max(this, rel * depth) (units)")
+    projection_depth_tolerance_rel: float = Field(0.015, ge=0, lt=1)
+    projection_min_points: int = Field(20, ge=1, description="'projection': a link needs this many visible points ...")
+    projection_min_share: float = Field(0.05, ge=0, le=1, description="... and this share of the segment visible")
+    projection_link_share: float = Field(0.5, gt=0, le=1, description="'projection': share of the visible points "
+                                         "that must land on the other segment")
+
+    # resolving the evidence (method 'fused', see shadowcorr.grouping)
+    fusion_surface_prior: float = Field(20.0, gt=0, description="landing points that make surface evidence half-sure")
+    fusion_volume_weight: float = Field(1.0, ge=0, description="weight of the network's volumetric evidence")
+    fusion_volume_prior: float = Field(1.0, gt=0, description="shared-voxel mass that makes volumetric evidence half-sure")
+    fusion_volume_distance: float = Field(1.0, gt=0, description="embedding distance at which volumetric evidence is neutral")
+    fusion_volume_scale: float = Field(0.5, gt=0, description="embedding distance over which the evidence saturates")
+    fusion_volume_voxels: float = Field(10.0, gt=0, description="shared voxels that give a segment pair full mass")
+    fusion_cannot_link: float = Field(1.0, ge=0, description="penalty per pair of different mask ids of one view")
+    fusion_same_mask: float = Field(0.5, ge=0, description="bonus per pair of blobs of one mask id in one view")
+    fusion_threshold: float = Field(0.0, description="groups merge while their linkage exceeds this")
+    fusion_confidence_slope: float = Field(4.0, gt=0, description="slope of the logistic turning a segment's "
+                                           "linkage margin into its confidence")
+
+    # steps 11-12: clustering (methods 'shadowcorr' and 'meanshift')
     bandwidth: float = Field(0.7, gt=0, description="MeanShift bandwidth on the network embeddings")
     baseline_bandwidth: float = Field(0.2, gt=0, description="MeanShift bandwidth of the 'meanshift' baseline")
     min_cluster_size: int = Field(5, ge=1, description="smaller clusters merge into the nearest larger one")

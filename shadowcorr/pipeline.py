@@ -14,16 +14,22 @@ import numpy as np
 
 from .assignment import assign
 from .bundle import SceneBundle, unit_scale
-from .config import ShadowCorrConfig
+from .config import NETWORK_METHODS, ShadowCorrConfig
 from .nn import Model, load_model, run_batched
 from .result import ModelInfo, Result
 from .segments import extract_segments
-from .shadows import cast_shadows, segment_shells
+from .shadows import ShadowVoxels, cast_shadows, raw_shells, segment_shells
+from .surface_evidence import surface_evidence
 from .voxel_scene import VoxelScene, build_voxel_scene
 
 
 def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> VoxelScene:
-    """Segments, shadows, consensus voxels and network features of one scene."""
+    """Segments, then the evidence the configured method reads, of one scene.
+
+    ``shadowcorr``, ``meanshift`` and ``fused`` cast shadows and build the consensus voxels and
+    network features; ``projection`` and ``fused`` project every segment into the other
+    views (cross-view surface evidence).
+    """
     config = config or ShadowCorrConfig()
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -34,15 +40,24 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
             f"min_blob_pixels = {config.min_blob_pixels}"
         )
     timings["segments"] = (time.perf_counter() - t0) * 1e3
-    t0 = time.perf_counter()
-    shells = segment_shells(segments, config)
-    timings["shells"] = (time.perf_counter() - t0) * 1e3
-    t0 = time.perf_counter()
-    shadows = cast_shadows(segments, shells, config)
-    timings["shadows"] = (time.perf_counter() - t0) * 1e3
+    surface = None
+    if config.method in ("projection", "fused"):
+        t0 = time.perf_counter()
+        surface = surface_evidence(bundle, segments, config)
+        timings["surface_evidence"] = (time.perf_counter() - t0) * 1e3
+    if config.method == "projection":
+        shells, shadows = raw_shells(segments), ShadowVoxels.empty()
+    else:
+        t0 = time.perf_counter()
+        shells = segment_shells(segments, config)
+        timings["shells"] = (time.perf_counter() - t0) * 1e3
+        t0 = time.perf_counter()
+        shadows = cast_shadows(segments, shells, config)
+        timings["shadows"] = (time.perf_counter() - t0) * 1e3
     scene = build_voxel_scene(
         bundle.name, bundle.units, unit_scale(bundle.units, config.units), segments, shells, shadows, config, timings
     )
+    scene.surface = surface
     scene.warnings[:0] = list(bundle.warnings)
     return scene
 
@@ -90,7 +105,7 @@ def correspond(
     """
     config = config or ShadowCorrConfig()
     scene = prepare(bundle, config)
-    if config.method == "meanshift":
+    if config.method not in NETWORK_METHODS:
         return assign(scene, baseline_embeddings(scene), config, metrics=metrics)
     model = model or load_model()
     t0 = time.perf_counter()

@@ -8,7 +8,7 @@ from pydantic import BaseModel, Field
 
 from ._version import __version__
 
-Assignment = Literal["vote", "unfiltered_voxels", "nearest_object", "own_object"]
+Assignment = Literal["vote", "unfiltered_voxels", "nearest_object", "own_object", "evidence"]
 
 
 class SegmentLabel(BaseModel):
@@ -20,13 +20,16 @@ class SegmentLabel(BaseModel):
     component: int = Field(description="blob index within (view, instance), largest blob first")
     num_points: int = Field(description="back-projected 3D points with valid depth")
     object: int = Field(description="object label; segments with the same label are the same physical object")
-    support: float = Field(description="share of the segment's voxel votes that went to its object (0-1)")
+    support: float = Field(description="how sure the label is (0-1): for 'shadowcorr' and 'meanshift' the share of "
+                           "the segment's voxel votes that went to its object; for 'projection' and 'fused' the "
+                           "calibrated confidence of the evidence (see shadowcorr.grouping)")
     assignment: Assignment = Field(
         "vote",
         description="how the label was found: 'vote' (majority of its kept voxels); 'unfiltered_voxels' "
         "(no voxel survived the consensus filter: nearest kept voxels of its own shadow voted); "
         "'nearest_object' (no shadow at all: nearest kept voxel to its centroid); "
-        "'own_object' (no valid 3D point, or its shadow is near no kept voxel: an object of its own)",
+        "'own_object' (no valid 3D point, or its shadow is near no kept voxel: an object of its own); "
+        "'evidence' (methods 'projection' and 'fused': grouped by the evidence between segments)",
     )
 
 
@@ -53,7 +56,7 @@ class Result(BaseModel):
 
     scene: str
     units: str = Field(description="length units of centroids and boxes (the bundle's units)")
-    method: Literal["shadowcorr", "meanshift"]
+    method: Literal["shadowcorr", "meanshift", "projection", "fused"]
     segments: list[SegmentLabel]
     objects: list[ObjectSummary]
     model: ModelInfo | None = Field(None, description="the network used (none for the 'meanshift' baseline)")

@@ -38,6 +38,9 @@ class Segments:
     optical_axis: np.ndarray  # (S, 3) float64, unit vector
     view_names: list[str]
     truth: np.ndarray | None = None  # (S,) int64 ground-truth object per segment, metrics only
+    # Per view: (H, W) int32 image of the segment index on each pixel (-1: no segment), for
+    # the cross-view surface evidence.  None for views without images (point flavour).
+    pixel_segment: list[np.ndarray | None] | None = None
 
     @property
     def num_segments(self) -> int:
@@ -63,10 +66,11 @@ class Blobs:
     instance: np.ndarray  # (B,) mask value
     component: np.ndarray  # (B,) index within its instance, largest first
 
-    def label_image(self, shape: tuple[int, int], labels: np.ndarray | None = None, fill: int = -1) -> np.ndarray:
+    def label_image(self, shape: tuple[int, int], labels: np.ndarray | None = None, fill: int = -1,
+                    dtype: type = np.int64) -> np.ndarray:
         """(H, W) image holding ``labels[b]`` (default: b) on blob b's pixels and ``fill`` elsewhere."""
         labels = np.arange(self.lengths.size) if labels is None else np.asarray(labels)
-        image = np.full(shape[0] * shape[1], fill, dtype=np.int64)
+        image = np.full(shape[0] * shape[1], fill, dtype=dtype)
         image[self.pixels] = np.repeat(labels, self.lengths)
         return image.reshape(shape)
 
@@ -136,9 +140,14 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         return _from_point_segments(bundle, scale)
 
     points, lengths, view_idx, instances, components, pixels, centers, axes, truth = ([] for _ in range(9))
+    pixel_segment: list[np.ndarray | None] = []
     max_depth_bundle = config.max_depth / scale
+    first_segment = 0
     for vi, view in enumerate(bundle.views):
         blobs = find_blobs(view.mask, config.split_components, config.min_blob_pixels)
+        pixel_segment.append(
+            blobs.label_image(view.mask.shape, np.arange(blobs.lengths.size) + first_segment, dtype=np.int32))
+        first_segment += blobs.lengths.size
         if blobs.lengths.size == 0:
             continue
         d = view.depth.ravel()[blobs.pixels]
@@ -177,6 +186,7 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         optical_axis=np.concatenate(axes),
         view_names=[v.name for v in bundle.views],
         truth=np.concatenate(truth) if truth else None,
+        pixel_segment=pixel_segment,
     )
 
 

@@ -49,6 +49,10 @@ class ShadowVoxels:
     cell: np.ndarray  # (M, 3) int64 voxel index (centre = cell * voxel_size)
     confidence: np.ndarray  # (M,) phi in (min_confidence, 1]
 
+    @classmethod
+    def empty(cls) -> "ShadowVoxels":
+        return cls(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros(0))
+
 
 def _separation_gap(*point_sets: np.ndarray) -> float:
     """A shift larger than any distance within or between the given point sets."""
@@ -136,12 +140,26 @@ def segment_shells(segments: Segments, config: ShadowCorrConfig) -> SegmentShell
     return SegmentShells(pts, seg, count, mean, axis_lengths, direction)
 
 
+def raw_shells(segments: Segments) -> SegmentShells:
+    """Shells without clean-up or geometry: the back-projected points and their means only.
+
+    For methods that cast no shadows (``projection``), which still report centroids and boxes.
+    """
+    s = segments.num_segments
+    seg = segments.segment_index
+    count = segments.lengths.astype(np.int64)
+    safe = np.maximum(count, 1)[:, None]
+    mean = np.stack([np.bincount(seg, weights=segments.points[:, i], minlength=s) for i in range(3)], axis=1) / safe
+    zeros = np.zeros((s, 3))
+    return SegmentShells(segments.points, seg, count, mean, zeros, zeros)
+
+
 def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrConfig) -> ShadowVoxels:
     """Steps 4-6: silhouette-aware erosion layers, voxelisation, confidence per voxel."""
     s = segments.num_segments
     pts, seg, v = shells.points, shells.segment, config.voxel_size
     if pts.shape[0] == 0:
-        return ShadowVoxels(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros(0))
+        return ShadowVoxels.empty()
     direction = shells.direction
     centred = pts - shells.mean[seg]
 

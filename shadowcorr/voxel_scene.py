@@ -23,6 +23,7 @@ from .grid_keys import pack_cell_keys, unique_keys
 from .segment_embedding import cooccurrence, train_segment_embeddings, voxel_embeddings
 from .segments import Segments
 from .shadows import SegmentShells, ShadowVoxels, segment_max, segment_min
+from .surface_evidence import SurfaceEvidence
 
 
 @dataclass
@@ -60,6 +61,8 @@ class VoxelScene:
     orphan_index: np.ndarray  # (K, 3) int64
     warnings: list[str] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # cross-view surface evidence (methods 'projection' and 'fused'); None otherwise
+    surface: SurfaceEvidence | None = None
 
     @property
     def num_segments(self) -> int:

@@ -1,0 +1,269 @@
+"""Stage 4: evidence between segments -> groups of segments, one group per physical object.
+
+Two ways to resolve the evidence, one per method:
+
+* :func:`link_components` (method ``projection``, training-free): segment ``a`` is linked to
+  segment ``b`` of another view when at least ``max(projection_min_points,
+  projection_min_share * samples(a))`` of ``a``'s points are visible in ``b``'s view and at
+  least ``projection_link_share`` of those land on ``b`` (either direction); the connected
+  components of the links are the objects.  One wrong link joins two objects.
+
+* :func:`agglomerate` (method ``fused``): greedy average-linkage clustering on *signed*
+  evidence, which does not chain through one bad link.  Every segment starts as its own
+  group; the two groups with the highest linkage merge, as long as it is above
+  ``fusion_threshold``.  The linkage of groups X and Y adds up
+
+  - surface evidence, the stronger of the two directions: of all points of X that are
+    visible in Y's views and land on some segment there, the share ``f`` that lands on Y, as
+    ``(2 f - 1) n / (n + fusion_surface_prior)`` with ``n`` the number of such points (and
+    likewise from Y to X) - the smaller of two pieces of one surface lands inside the larger
+    one, while the larger only partly covers the smaller;
+  - volumetric evidence: the similarity of the network's embeddings of segments whose
+    shadows share voxels, pooled as ``sum(value * mass) / (sum(mass) +
+    fusion_volume_prior)``, times ``fusion_volume_weight``;
+  - constraints of the views: each pair of segments that are different mask ids of one view
+    subtracts ``fusion_cannot_link``, each pair that are blobs of one mask id adds
+    ``fusion_same_mask``, both as a share of all segment pairs between X and Y - a
+    constraint, not a rule: strong evidence from other views can still join a split mask.
+
+Each segment's ``confidence`` compares how strongly it is linked to its own group with the
+strongest alternative (another group, or standing alone); see :func:`segment_confidence`.
+
+Nothing here reads ground truth: mask ids are compared only within their own view.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from .config import ShadowCorrConfig
+from .surface_evidence import SurfaceEvidence
+
+
+@dataclass
+class SegmentGraph:
+    """All evidence between segments (plain arrays; input of :func:`agglomerate`)."""
+
+    view: np.ndarray  # (S,) view of each segment
+    instance: np.ndarray  # (S,) mask id of each segment (meaningful within its view only)
+    surface: SurfaceEvidence
+    # Volumetric evidence, one row per unordered pair (a < b): value in [-1, 1] and its mass.
+    volume_a: np.ndarray
+    volume_b: np.ndarray
+    volume_value: np.ndarray
+    volume_mass: np.ndarray
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.view.shape[0])
+
+
+def link_components(surface: SurfaceEvidence, segment_view: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
+    """Objects of the training-free ``projection`` method: connected components of the links."""
+    s = surface.num_segments
+    a, b, hits = surface.hit_source, surface.hit_target, surface.hit_count
+    seen = surface.visible[a, segment_view[b]]
+    enough = np.maximum(config.projection_min_points, config.projection_min_share * surface.samples[a])
+    link = (seen >= enough) & (hits >= config.projection_link_share * seen)
+    graph = coo_matrix((np.ones(int(link.sum())), (a[link], b[link])), shape=(s, s))
+    _, labels = connected_components(graph, directed=True, connection="weak")
+    return labels.astype(np.int64)
+
+
+def linkage(hits_xy, trials_xy, hits_yx, trials_yx, volume, mass, same, conflict, pairs, config: ShadowCorrConfig):
+    """The linkage of groups X and Y from their pooled counts (scalars or arrays; see the module docstring).
+
+    ``hits_xy``: points of X landing on Y; ``trials_xy``: points of X visible in Y's views and
+    landing on some segment there (likewise from Y to X); ``volume`` and ``mass``: summed
+    volumetric value * mass and mass; ``same`` / ``conflict``: segment pairs that are blobs of
+    one mask id / different mask ids of one view; ``pairs``: all segment pairs between them.
+    """
+    # Plain arithmetic, so that one formula serves the scalar loop and the vectorised confidence.
+    forward, backward = _directed_surface(hits_xy, trials_xy, config), _directed_surface(hits_yx, trials_yx, config)
+    surface = np.maximum(forward, backward) if isinstance(forward, np.ndarray) else max(forward, backward)
+    volumetric = config.fusion_volume_weight * volume / (mass + config.fusion_volume_prior)
+    constraints = (config.fusion_same_mask * same - config.fusion_cannot_link * conflict) / pairs
+    return surface + volumetric + constraints
+
+
+def _directed_surface(hits, trials, config: ShadowCorrConfig):
+    """Surface evidence of one direction: (2 share - 1), shrunk towards 0 when few points were seen
+    (exactly 0 when none was: the shrink factor is 0 there)."""
+    return (2.0 * hits / (trials + 1e-12) - 1.0) * trials / (trials + config.fusion_surface_prior)
+
+
+class _Groups:
+    """Mutable state of the agglomeration: per group its size, views, mask ids, trials and edges."""
+
+    def __init__(self, graph: SegmentGraph, config: ShadowCorrConfig):
+        s = graph.num_segments
+        self.config = config
+        self.size = np.ones(s, dtype=np.int64)
+        # trials[g][j]: points of group g visible in view j and landing on some segment there
+        self.trials: list[list[float]] = graph.surface.on_mask.astype(np.float64).tolist()
+        self.views = [{int(v): 1} for v in graph.view]
+        self.masks = [{(int(v), int(i)): 1} for v, i in zip(graph.view, graph.instance)]
+        self.version = np.zeros(s, dtype=np.int64)
+        self.parent = np.arange(s)
+        # edges[g][h] = [hits g->h, hits h->g, sum of volume value * mass, sum of volume mass]
+        self.edges: list[dict[int, list[float]]] = [{} for _ in range(s)]
+        surf = graph.surface
+        for a, b, h in zip(surf.hit_source.tolist(), surf.hit_target.tolist(), surf.hit_count.tolist()):
+            self._edge(a, b)[0] += h
+            self._edge(b, a)[1] += h
+        for a, b, value, mass in zip(graph.volume_a.tolist(), graph.volume_b.tolist(),
+                                     graph.volume_value.tolist(), graph.volume_mass.tolist()):
+            for g, h in ((a, b), (b, a)):
+                e = self._edge(g, h)
+                e[2] += value * mass
+                e[3] += mass
+        # Blobs of one mask id in one view are candidates too, even without other evidence.
+        key = graph.view.astype(np.int64) * (int(graph.instance.max(initial=0)) + 1) + graph.instance
+        order = np.argsort(key, kind="stable")
+        same = np.flatnonzero(key[order][1:] == key[order][:-1])
+        for a, b in zip(order[same].tolist(), order[same + 1].tolist()):
+            self._edge(a, b)
+            self._edge(b, a)
+
+    def _edge(self, g: int, h: int) -> list[float]:
+        e = self.edges[g].get(h)
+        if e is None:
+            e = self.edges[g][h] = [0.0, 0.0, 0.0, 0.0]
+        return e
+
+    def constraint_pairs(self, g: int, h: int) -> tuple[int, int]:
+        """(pairs of blobs of one mask id, pairs of different mask ids of one view) between g and h."""
+        small, large = (g, h) if len(self.masks[g]) <= len(self.masks[h]) else (h, g)
+        same = sum(n * self.masks[large].get(k, 0) for k, n in self.masks[small].items())
+        small, large = (g, h) if len(self.views[g]) <= len(self.views[h]) else (h, g)
+        shared_view = sum(n * self.views[large].get(v, 0) for v, n in self.views[small].items())
+        return same, shared_view - same
+
+    def linkage(self, g: int, h: int) -> float:
+        hits_gh, hits_hg, volume, mass = self.edges[g][h]
+        trials_g, trials_h = self.trials[g], self.trials[h]
+        trials_gh = sum(trials_g[v] for v in self.views[h])
+        trials_hg = sum(trials_h[v] for v in self.views[g])
+        same, conflict = self.constraint_pairs(g, h)
+        return float(linkage(hits_gh, trials_gh, hits_hg, trials_hg, volume, mass, same, conflict,
+                             float(self.size[g] * self.size[h]), self.config))
+
+    def merge(self, g: int, h: int) -> int:
+        """Fold the smaller group into the larger; returns the surviving group."""
+        if self.size[g] < self.size[h]:
+            g, h = h, g
+        self.parent[h] = g
+        self.size[g] += self.size[h]
+        self.trials[g] = [a + b for a, b in zip(self.trials[g], self.trials[h])]
+        for table_g, table_h in ((self.views[g], self.views[h]), (self.masks[g], self.masks[h])):
+            for k, n in table_h.items():
+                table_g[k] = table_g.get(k, 0) + n
+        for other, (ho, oh, volume, mass) in self.edges[h].items():
+            del self.edges[other][h]
+            if other == g:
+                continue
+            e = self._edge(g, other)
+            e[0] += ho
+            e[1] += oh
+            e[2] += volume
+            e[3] += mass
+            r = self._edge(other, g)
+            r[0] += oh
+            r[1] += ho
+            r[2] += volume
+            r[3] += mass
+        self.edges[h] = {}
+        self.version[g] += 1
+        self.version[h] = -1
+        return g
+
+    def labels(self) -> np.ndarray:
+        root = self.parent.copy()
+        while True:
+            nxt = root[root]
+            if np.array_equal(nxt, root):
+                return root
+            root = nxt
+
+
+def agglomerate(graph: SegmentGraph, config: ShadowCorrConfig) -> np.ndarray:
+    """Group label of every segment by signed average linkage (see the module docstring)."""
+    groups = _Groups(graph, config)
+    heap = [(-groups.linkage(g, h), g, h, 0, 0) for g in range(graph.num_segments) for h in groups.edges[g] if g < h]
+    heapq.heapify(heap)
+    while heap:
+        neg, g, h, vg, vh = heapq.heappop(heap)
+        if -neg <= config.fusion_threshold:
+            break
+        if groups.version[g] != vg or groups.version[h] != vh:
+            continue  # one of them has changed since this entry was pushed
+        kept = groups.merge(g, h)
+        for other in groups.edges[kept]:
+            heapq.heappush(heap, (-groups.linkage(kept, other), kept, other, groups.version[kept], groups.version[other]))
+    return groups.labels()
+
+
+def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
+    """How sure each segment's group is, in (0, 1).
+
+    For every segment the linkage (as between groups) of the segment alone to the rest of its
+    own group, and to every other group it has evidence with, is computed.  The margin of its
+    own group over the best alternative - another group, or standing alone (linkage 0) - goes
+    through a logistic of slope ``fusion_confidence_slope``: 0.5 means no evidence either way.
+    Vectorised over (segment, group) pairs that have evidence.
+    """
+    s = graph.num_segments
+    if s == 0:
+        return np.zeros(0)
+    _, group = np.unique(labels, return_inverse=True)
+    k, num_views = int(group.max()) + 1, graph.surface.on_mask.shape[1]
+    surf = graph.surface
+    src = np.concatenate([surf.hit_source, graph.volume_a, graph.volume_b, np.arange(s)])
+    dst = np.concatenate([surf.hit_target, graph.volume_b, graph.volume_a, np.arange(s)])
+    keys = np.unique(src * k + group[dst])
+    seg, grp = keys // k, keys % k
+    own = grp == group[seg]
+
+    def gather(a: np.ndarray, g: np.ndarray, values: np.ndarray) -> np.ndarray:
+        return np.bincount(np.searchsorted(keys, a * k + g), weights=values, minlength=keys.size)
+
+    ha, hb = surf.hit_source, surf.hit_target
+    hits_out = gather(ha, group[hb], surf.hit_count)  # from the segment into the group
+    hits_in = gather(hb, group[ha], surf.hit_count)  # from the group onto the segment
+    vm = graph.volume_value * graph.volume_mass
+    volume = gather(graph.volume_a, group[graph.volume_b], vm) + gather(graph.volume_b, group[graph.volume_a], vm)
+    mass = (gather(graph.volume_a, group[graph.volume_b], graph.volume_mass)
+            + gather(graph.volume_b, group[graph.volume_a], graph.volume_mass))
+
+    # Members of each group per view (the segment itself left out of its own group).
+    per_view = np.bincount(group * num_views + graph.view, minlength=k * num_views).reshape(k, num_views)
+    present = per_view[grp] - own[:, None] * (np.arange(num_views)[None, :] == graph.view[seg][:, None])
+    on_mask = surf.on_mask.astype(np.float64)
+    group_on_mask = np.zeros((k, num_views))
+    np.add.at(group_on_mask, group, on_mask)
+    trials_out = (on_mask[seg] * (present > 0)).sum(axis=1)
+    trials_in = group_on_mask[grp, graph.view[seg]]
+
+    mask_key = graph.view.astype(np.int64) * (int(graph.instance.max(initial=0)) + 1) + graph.instance
+    m_keys, m_count = np.unique(group * (int(mask_key.max()) + 1) + mask_key, return_counts=True)
+    lookup = grp * (int(mask_key.max()) + 1) + mask_key[seg]
+    at = np.minimum(np.searchsorted(m_keys, lookup), m_keys.size - 1)
+    same = np.where(m_keys[at] == lookup, m_count[at], 0) - own
+    conflict = per_view[grp, graph.view[seg]] - own - same
+    pairs = np.bincount(group, minlength=k)[grp] - own
+    value = np.where(pairs > 0, linkage(hits_out, trials_out, hits_in, trials_in, volume, mass, same, conflict,
+                                        np.maximum(pairs, 1), config), 0.0)
+
+    own_link = np.zeros(s)
+    own_link[seg[own]] = value[own]
+    best_other = np.full(s, -np.inf)
+    np.maximum.at(best_other, seg[~own], value[~own])
+    alone = np.bincount(group, minlength=k)[group] == 1
+    margin = np.where(alone, np.where(np.isfinite(best_other), -best_other, 0.0),
+                      own_link - np.maximum(best_other, 0.0))
+    return 1.0 / (1.0 + np.exp(-config.fusion_confidence_slope * margin))

@@ -1,0 +1,149 @@
+"""Stage 2b: segments -> cross-view surface evidence (where each segment lands in the other views).
+
+A segment is a piece of surface seen from one view.  Projected into another view, each of
+its points either cannot be checked there - outside the image, behind the camera, hidden
+behind nearer surface, or on a pixel without valid depth - or it is *visible*: its depth along
+that view's optical axis agrees with the view's own depth image within
+``max(projection_depth_tolerance, projection_depth_tolerance_rel * depth)``.  A visible
+point lands on the segment that covers its pixel there, or on no segment.
+
+Counting the landings of a deterministic subsample of every segment's points gives, for every
+segment ``a`` and view ``j`` (never a segment's own view):
+
+* ``visible[a, j]`` - points of ``a`` visible in ``j``;
+* ``on_mask[a, j]`` - of those, the points that land on some segment of ``j``;
+* ``hits`` - for every pair ``(a, b)`` with ``b`` in ``j``, the points of ``a`` landing on ``b``
+  (sparse and directed: only pairs with at least one landing exist).
+
+"Not visible" is no evidence; "visible and on another segment" is evidence against; a
+visible point on no segment (an eroded mask border, a mask the segmenter dropped) says
+nothing about which object it belongs to.  Nothing here reads ground truth: a segment's
+mask id is only used within its own view.
+
+Cost: every segment is tested against every view's frustum with its bounding sphere
+(``S x V`` cheap tests); only segments that may appear in a view are projected into it,
+so a large field costs what its overlapping views cost, not ``points x views``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .bundle import SceneBundle, unit_scale
+from .config import ShadowCorrConfig
+from .segments import Segments
+from .shadows import segment_max
+
+
+@dataclass
+class SurfaceEvidence:
+    """Landing counts of every segment's sample points in the other views (see the module docstring)."""
+
+    samples: np.ndarray  # (S,) sample points drawn from each segment
+    visible: np.ndarray  # (S, V) int64 sample points of a visible in view j
+    on_mask: np.ndarray  # (S, V) int64 visible points of a landing on some segment of view j
+    hit_source: np.ndarray  # (H,) int64 segment a
+    hit_target: np.ndarray  # (H,) int64 segment b (another view)
+    hit_count: np.ndarray  # (H,) int64 points of a landing on b
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.samples.shape[0])
+
+    @classmethod
+    def empty(cls, num_segments: int, num_views: int) -> "SurfaceEvidence":
+        none = np.zeros(0, dtype=np.int64)
+        grid = np.zeros((num_segments, num_views), dtype=np.int64)
+        return cls(np.zeros(num_segments, np.int64), grid, grid.copy(), none, none, none)
+
+
+def sample_segment_points(points: np.ndarray, lengths: np.ndarray, per_segment: int) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``per_segment`` points of each segment, evenly spread over its (raster-ordered) points.
+
+    Returns the indices into ``points`` (sorted by segment) and the number drawn per segment.
+    Deterministic: the same segment always gives the same sample.
+    """
+    lengths = np.asarray(lengths, dtype=np.int64)
+    take = np.minimum(lengths, per_segment)
+    seg = np.repeat(np.arange(lengths.size), take)
+    local = np.arange(seg.size) - np.repeat(np.cumsum(take) - take, take)
+    starts = np.cumsum(lengths) - lengths
+    offset = ((2 * local + 1) * lengths[seg]) // (2 * np.maximum(take[seg], 1))
+    return starts[seg] + offset, take
+
+
+def _frustum_candidates(centre: np.ndarray, radius: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                        k, width: int, height: int) -> np.ndarray:
+    """Segments whose bounding sphere may meet the view's frustum (camera-to-world pose, OpenCV)."""
+    c = (centre - translation) @ rotation  # camera frame
+    planes = np.array([
+        [k.fx, 0.0, k.cx + 0.5],
+        [-k.fx, 0.0, width - 0.5 - k.cx],
+        [0.0, k.fy, k.cy + 0.5],
+        [0.0, -k.fy, height - 0.5 - k.cy],
+        [0.0, 0.0, 1.0],
+    ])
+    planes /= np.linalg.norm(planes, axis=1, keepdims=True)
+    return np.all(c @ planes.T >= -radius[:, None], axis=1)
+
+
+def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorrConfig) -> SurfaceEvidence:
+    """Project every segment's sample points into every other view (see the module docstring)."""
+    s, num_views = segments.num_segments, len(bundle.views)
+    if segments.pixel_segment is None or s == 0:
+        return SurfaceEvidence.empty(s, num_views)
+    scale = unit_scale(bundle.units, config.units)
+    index, samples = sample_segment_points(segments.points, segments.lengths, config.projection_samples)
+    pts = segments.points[index]
+    seg = np.repeat(np.arange(s), samples)
+    first = np.cumsum(samples) - samples
+
+    # Bounding sphere of each segment's sample, for the frustum test.
+    safe = np.maximum(samples, 1)[:, None]
+    centre = np.stack([np.bincount(seg, weights=pts[:, i], minlength=s) for i in range(3)], axis=1) / safe
+    radius = segment_max(np.linalg.norm(pts - centre[seg], axis=1), seg, s)
+
+    visible = np.zeros((s, num_views), dtype=np.int64)
+    on_mask = np.zeros((s, num_views), dtype=np.int64)
+    keys, counts = [], []
+    for j, view in enumerate(bundle.views):  # per view, vectorised over all points
+        labels = segments.pixel_segment[j]
+        if labels is None or view.depth is None:
+            continue
+        k = view.intrinsics
+        height, width = labels.shape
+        rotation, translation = view.pose[:3, :3], view.pose[:3, 3] * scale
+        cand = _frustum_candidates(centre, radius, rotation, translation, k, width, height)
+        cand &= (segments.view != j) & (samples > 0)
+        cs = np.flatnonzero(cand)
+        if cs.size == 0:
+            continue
+        take = samples[cs]
+        rows = np.repeat(first[cs], take) + (np.arange(take.sum()) - np.repeat(np.cumsum(take) - take, take))
+        cam = (pts[rows] - translation) @ rotation
+        z = cam[:, 2]
+        front = z > 1e-9
+        rows, cam, z = rows[front], cam[front], z[front]
+        col = np.rint(k.fx * cam[:, 0] / z + k.cx).astype(np.int64)
+        row = np.rint(k.fy * cam[:, 1] / z + k.cy).astype(np.int64)
+        inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        rows, z, flat = rows[inside], z[inside], (row * width + col)[inside]
+        depth = view.depth.ravel()[flat].astype(np.float64) * scale
+        tolerance = np.maximum(config.projection_depth_tolerance, config.projection_depth_tolerance_rel * z)
+        agree = np.isfinite(depth) & (depth > 0) & (np.abs(depth - z) <= tolerance)
+        rows, flat = rows[agree], flat[agree]
+        src = seg[rows]
+        target = labels.ravel()[flat].astype(np.int64)
+        visible[:, j] = np.bincount(src, minlength=s)
+        landed = target >= 0
+        on_mask[:, j] = np.bincount(src[landed], minlength=s)
+        key, count = np.unique(src[landed] * s + target[landed], return_counts=True)
+        keys.append(key)
+        counts.append(count)
+
+    key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
+    count = np.concatenate(counts) if counts else np.zeros(0, np.int64)
+    # A pair (a, b) appears in one view only (b's own view), so keys never repeat.
+    return SurfaceEvidence(samples, visible, on_mask, key // s, key % s, count.astype(np.int64))
