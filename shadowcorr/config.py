@@ -79,6 +79,8 @@ class ShadowCorrConfig(BaseModel):
     projection_depth_tolerance: float = Field(3.0, gt=0, description="a projected point is visible when its depth "
                                               "agrees with the view's depth within max(this, rel * depth) (units)")
     projection_depth_tolerance_rel: float = Field(0.015, ge=0, lt=1)
+    projection_pixel_tolerance: int = Field(0, ge=0, le=16, description="a visible point on a pixel of no segment "
+                                            "lands on the nearest segment within this many pixels (eroded masks)")
     projection_min_points: int = Field(20, ge=1, description="'projection': a link needs this many visible points ...")
     projection_min_share: float = Field(0.05, ge=0, le=1, description="... and this share of the segment visible")
     projection_link_share: float = Field(0.5, gt=0, le=1, description="'projection': share of the visible points "

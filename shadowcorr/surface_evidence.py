@@ -89,6 +89,39 @@ def _frustum_candidates(centre: np.ndarray, radius: np.ndarray, rotation: np.nda
     return np.all(c @ planes.T >= -radius[:, None], axis=1)
 
 
+def _ring_offsets(radius: int) -> np.ndarray:
+    """(K, 2) pixel offsets within ``radius`` (Euclidean), nearest first, the centre left out."""
+    r = np.arange(-radius, radius + 1)
+    dy, dx = np.meshgrid(r, r, indexing="ij")
+    d2 = (dy * dy + dx * dx).ravel()
+    keep = (d2 > 0) & (d2 <= radius * radius)
+    order = np.argsort(d2[keep], kind="stable")
+    return np.stack([dy.ravel()[keep][order], dx.ravel()[keep][order]], axis=1)
+
+
+def _nearest_label(labels: np.ndarray, flat: np.ndarray, target: np.ndarray, radius: int) -> np.ndarray:
+    """Points on a pixel of no segment take the nearest segment within ``radius`` pixels, if any.
+
+    A 2D segmenter's masks stop short of the object's outline (eroded masks): a point
+    that lands just outside a mask, with depth that agrees, is on that object.
+    """
+    off = np.flatnonzero(target < 0)
+    if off.size == 0:
+        return target
+    height, width = labels.shape
+    row, col = np.divmod(flat[off], width)
+    offsets = _ring_offsets(radius)
+    rr = np.clip(row[:, None] + offsets[None, :, 0], 0, height - 1)
+    cc = np.clip(col[:, None] + offsets[None, :, 1], 0, width - 1)
+    near = labels[rr, cc]
+    found = near >= 0
+    first = np.argmax(found, axis=1)
+    hit = found[np.arange(off.size), first]
+    out = target.copy()
+    out[off[hit]] = near[hit, first[hit]]
+    return out
+
+
 def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorrConfig) -> SurfaceEvidence:
     """Project every segment's sample points into every other view (see the module docstring)."""
     s, num_views = segments.num_segments, len(bundle.views)
@@ -136,6 +169,8 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         rows, flat = rows[agree], flat[agree]
         src = seg[rows]
         target = labels.ravel()[flat].astype(np.int64)
+        if config.projection_pixel_tolerance > 0:
+            target = _nearest_label(labels, flat, target, config.projection_pixel_tolerance)
         visible[:, j] = np.bincount(src, minlength=s)
         landed = target >= 0
         on_mask[:, j] = np.bincount(src[landed], minlength=s)

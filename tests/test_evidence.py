@@ -1,0 +1,166 @@
+"""Cross-view surface evidence, the evidence graph and the 'projection' and 'fused' methods."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
+from shadowcorr.bundle import SceneBundle
+from shadowcorr.grouping import SegmentGraph, agglomerate, link_components, segment_confidence
+from shadowcorr.segments import extract_segments
+from shadowcorr.surface_evidence import SurfaceEvidence, sample_segment_points, surface_evidence
+
+from .scenes import sphere_scene
+from .test_engine import FIELD_CENTRES, FIELD_RADII, same_partition
+
+GRAPH_METHODS = ["projection", "fused"]
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
+
+
+@pytest.fixture(scope="module")
+def field():
+    return sphere_scene(FIELD_CENTRES, FIELD_RADII, cameras=4, width=480, height_px=270)
+
+
+def truth_of(result) -> list[int]:
+    return [s.instance for s in result.segments]
+
+
+def test_sampling_spreads_over_each_segment_and_is_deterministic():
+    lengths = np.array([10, 3, 0, 7])
+    points = np.arange(20, dtype=float)[:, None].repeat(3, axis=1)
+    index, drawn = sample_segment_points(points, lengths, 4)
+    assert drawn.tolist() == [4, 3, 0, 4]
+    seg = np.repeat(np.arange(4), drawn)
+    starts = np.cumsum(lengths) - lengths
+    assert np.all(index >= starts[seg]) and np.all(index < starts[seg] + lengths[seg])
+    assert len(set(index.tolist())) == index.size  # no point drawn twice
+    again, _ = sample_segment_points(points, lengths, 4)
+    np.testing.assert_array_equal(index, again)
+
+
+def test_segments_land_on_their_own_sphere_in_neighbouring_views(field):
+    config = ShadowCorrConfig(method="projection")
+    segments = extract_segments(field, config)
+    ev = surface_evidence(field, segments, config)
+    s = segments.num_segments
+    assert ev.visible.shape == (s, 4)
+    # Never projected into the own view.
+    assert np.all(ev.visible[np.arange(s), segments.view] == 0)
+    assert np.all(ev.on_mask <= ev.visible)
+    same = segments.instance[ev.hit_source] == segments.instance[ev.hit_target]
+    # Nearly every landing is on the same sphere; the few others are rim pixels.
+    assert ev.hit_count[same].sum() > 0.97 * ev.hit_count.sum()
+    # Landings are counted once per target view: per (source, view) they add up to on_mask.
+    per_view = np.zeros_like(ev.on_mask)
+    np.add.at(per_view, (ev.hit_source, segments.view[ev.hit_target]), ev.hit_count)
+    np.testing.assert_array_equal(per_view, ev.on_mask)
+
+
+def test_hidden_points_are_not_visible():
+    # Two cameras 180 degrees apart see opposite sides of one sphere: nothing of one side is
+    # visible from the other (it lies behind the nearer surface), so there is no evidence.
+    bundle = sphere_scene([[0, 0, 0]], [60], cameras=2, height=0.0)
+    config = ShadowCorrConfig(method="projection")
+    ev = surface_evidence(bundle, extract_segments(bundle, config), config)
+    assert ev.visible.sum() < 0.02 * ev.samples.sum()
+
+
+@pytest.mark.parametrize("method", GRAPH_METHODS)
+def test_graph_methods_find_the_spheres(field, model, method):
+    result = correspond(field, model, ShadowCorrConfig(method=method))
+    assert result.method == method
+    assert same_partition(result.labels, truth_of(result)), (result.labels, truth_of(result))
+    assert {s.assignment for s in result.segments} == {"evidence"}
+    assert all(0.0 <= s.support <= 1.0 for s in result.segments)
+    assert "grouping" in result.timings_ms and "surface_evidence" in result.timings_ms
+    assert (result.model is not None) == (method == "fused")
+
+
+def test_fused_joins_opposite_views_that_share_no_surface(model):
+    bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII, cameras=2, width=480, height_px=270)
+    result = correspond(bundle, model, ShadowCorrConfig(method="fused"))
+    assert same_partition(result.labels, truth_of(result)), (result.labels, truth_of(result))
+
+
+@pytest.mark.parametrize("method", GRAPH_METHODS)
+def test_mask_ids_are_never_read_across_views(field, model, method):
+    """Renumber every view's mask ids and carry the truth in `mapped`: the partition must not change."""
+    rng = np.random.default_rng(5)
+    views = []
+    for v in field.views:
+        ids = np.unique(v.mask[v.mask > 0])
+        new = rng.permutation(np.arange(100, 100 + ids.size))
+        table = np.zeros(int(v.mask.max()) + 1, dtype=np.int32)
+        table[ids] = new
+        views.append(replace(v, mask=table[v.mask], instance_objects={int(n): int(o) for n, o in zip(new, ids)}))
+    relabelled = SceneBundle(units=field.units, views=views, name="relabelled", ground_truth="mapped")
+    config = ShadowCorrConfig(method=method)
+    a, b = correspond(field, model, config), correspond(relabelled, model, config)
+    key = lambda r: [(s.view, s.num_points) for s in r.segments]  # noqa: E731
+    order_b = {k: i for i, k in enumerate(key(b))}
+    perm = [order_b[k] for k in key(a)]
+    assert same_partition(a.labels, [b.labels[i] for i in perm])
+    assert b.metrics["average_purity"] == a.metrics["average_purity"] == 100.0
+
+
+def _graph(view, instance, on_mask, hits, volume=()):
+    src, dst, count = (np.array(x, dtype=np.int64) for x in zip(*hits)) if hits else (np.zeros(0, np.int64),) * 3
+    s = len(view)
+    surface = SurfaceEvidence(np.full(s, 100), np.array(on_mask), np.array(on_mask), src, dst, count)
+    va, vb, value, mass = (np.array(x) for x in zip(*volume)) if volume else (np.zeros(0, np.int64),) * 2 + (np.zeros(0),) * 2
+    return SegmentGraph(np.array(view), np.array(instance), surface, va.astype(np.int64), vb.astype(np.int64),
+                        value.astype(float), mass.astype(float))
+
+
+def test_one_merged_mask_does_not_chain_two_objects():
+    # Views 0, 1, 2.  Rocks P and Q: view 0 sees them apart (segments 0, 1), view 1 has one
+    # merged mask over both (segment 2), view 2 sees them apart (segments 3, 4).
+    view = [0, 0, 1, 2, 2]
+    instance = [1, 2, 1, 1, 2]
+    n = 100
+    on_mask = [[0, n, n], [0, n, n], [2 * n, 0, 2 * n], [n, n, 0], [n, n, 0]]
+    hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 4, n), (2, 0, n), (2, 1, n), (2, 3, n), (2, 4, n),
+            (3, 0, n), (3, 2, n), (4, 1, n), (4, 2, n)]
+    graph = _graph(view, instance, on_mask, hits)
+    config = ShadowCorrConfig(method="fused")
+    labels = agglomerate(graph, config)
+    assert labels[0] == labels[3] and labels[1] == labels[4] and labels[0] != labels[1]
+    # The training-free check links everything through the merged mask.
+    assert len(set(link_components(graph.surface, graph.view, config).tolist())) == 1
+    confidence = segment_confidence(graph, labels, config)
+    assert confidence[2] < min(confidence[[0, 1, 3, 4]])  # the merged mask is the doubtful one
+
+
+def test_a_split_mask_is_joined_when_other_views_agree():
+    # One rock: view 0 split into two ids (segments 0, 1), views 1 and 2 see it whole (2, 3).
+    view = [0, 0, 1, 2]
+    instance = [1, 2, 1, 1]
+    n = 100
+    on_mask = [[0, n, n], [0, n, n], [2 * n, 0, 2 * n], [2 * n, 2 * n, 0]]
+    hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 3, n), (2, 0, n), (2, 1, n), (2, 3, 2 * n),
+            (3, 0, n), (3, 1, n), (3, 2, 2 * n)]
+    labels = agglomerate(_graph(view, instance, on_mask, hits), ShadowCorrConfig(method="fused"))
+    assert len(set(labels.tolist())) == 1
+
+
+def test_volumetric_evidence_alone_joins_and_separates():
+    # No surface evidence at all (opposite views): the network's evidence decides.
+    view, instance = [0, 1, 0, 1], [1, 1, 2, 2]
+    volume = [(0, 1, 0.9, 1.0), (2, 3, 0.8, 1.0), (0, 3, -0.9, 1.0), (1, 2, -0.7, 1.0)]
+    graph = _graph(view, instance, np.zeros((4, 2), int), [], volume)
+    labels = agglomerate(graph, ShadowCorrConfig(method="fused"))
+    assert labels[0] == labels[1] and labels[2] == labels[3] and labels[0] != labels[2]
+
+
+def test_surface_evidence_is_computed_only_for_graph_methods(field):
+    assert prepare(field, ShadowCorrConfig(method="shadowcorr")).surface is None
+    scene = prepare(field, ShadowCorrConfig(method="projection"))
+    assert scene.surface is not None and scene.num_voxels == 0  # no shadows are cast
