@@ -88,6 +88,8 @@ class ShadowCorrConfig(BaseModel):
 
     # resolving the evidence (method 'fused', see shadowcorr.grouping)
     fusion_surface_prior: float = Field(20.0, gt=0, description="landing points that make surface evidence half-sure")
+    fusion_surface_symmetry: float = Field(0.25, ge=0, le=1, description="weight of the weaker direction of the "
+                                           "surface evidence (0: the stronger direction alone)")
     fusion_volume_weight: float = Field(1.0, ge=0, description="weight of the network's volumetric evidence")
     fusion_volume_prior: float = Field(1.0, gt=0, description="shared-voxel mass that makes volumetric evidence half-sure")
     fusion_volume_distance: float = Field(1.0, gt=0, description="embedding distance at which volumetric evidence is neutral")

@@ -85,7 +85,11 @@ def linkage(hits_xy, trials_xy, hits_yx, trials_yx, volume, mass, same, conflict
     """
     # Plain arithmetic, so that one formula serves the scalar loop and the vectorised confidence.
     forward, backward = _directed_surface(hits_xy, trials_xy, config), _directed_surface(hits_yx, trials_yx, config)
-    surface = np.maximum(forward, backward) if isinstance(forward, np.ndarray) else max(forward, backward)
+    if isinstance(forward, np.ndarray):
+        stronger, weaker = np.maximum(forward, backward), np.minimum(forward, backward)
+    else:
+        stronger, weaker = max(forward, backward), min(forward, backward)
+    surface = stronger + config.fusion_surface_symmetry * (weaker - stronger)
     volumetric = config.fusion_volume_weight * volume / (mass + config.fusion_volume_prior)
     constraints = (config.fusion_same_mask * same - config.fusion_cannot_link * conflict) / pairs
     return surface + volumetric + constraints
@@ -223,8 +227,8 @@ def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCo
     _, group = np.unique(labels, return_inverse=True)
     k, num_views = int(group.max()) + 1, graph.surface.on_mask.shape[1]
     surf = graph.surface
-    src = np.concatenate([surf.hit_source, graph.volume_a, graph.volume_b, np.arange(s)])
-    dst = np.concatenate([surf.hit_target, graph.volume_b, graph.volume_a, np.arange(s)])
+    src = np.concatenate([surf.hit_source, surf.hit_target, graph.volume_a, graph.volume_b, np.arange(s)])
+    dst = np.concatenate([surf.hit_target, surf.hit_source, graph.volume_b, graph.volume_a, np.arange(s)])
     keys = np.unique(src * k + group[dst])
     seg, grp = keys // k, keys % k
     own = grp == group[seg]
