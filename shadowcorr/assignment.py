@@ -118,7 +118,7 @@ def _orphan_warnings(scene: VoxelScene, how: list[str]) -> list[str]:
     out = []
     with_shadow = set(np.unique(scene.orphan_segment).tolist())
     for o, h in enumerate(how):
-        if h == "vote":
+        if h in ("vote", "evidence"):
             continue
         if o in with_shadow:
             why = "no surviving voxel"
@@ -152,8 +152,9 @@ def assign(
         t0 = time.perf_counter()
         seg_label, support = group_by_evidence(scene, embeddings, config)
         voxel_label = _strongest_member_label(scene, seg_label)
-        how = ["evidence"] * s
-        warnings = list(scene.warnings)
+        # A segment without a single valid 3D point has no evidence: an object of its own.
+        how = ["own_object" if n == 0 else "evidence" for n in scene.segment_num_points.tolist()]
+        warnings = list(scene.warnings) + _orphan_warnings(scene, how)
         timings["grouping"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
     else:

@@ -22,9 +22,11 @@ def _cameras(text: str) -> list[int]:
 
 def _add_method_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", help="model file (.safetensors or reference .pth); default: the packaged model")
-    p.add_argument("--method", choices=["shadowcorr", "meanshift"], default="shadowcorr",
-                   help="'meanshift' is the paper's no-network baseline")
-    p.add_argument("--bandwidth", type=float, help="MeanShift bandwidth (default 0.7; baseline 0.2)")
+    p.add_argument("--method", choices=["fused", "projection", "shadowcorr", "meanshift"], default="fused",
+                   help="fused (default): cross-view surface evidence and the network's volumetric evidence; "
+                   "projection: the training-free cross-view check; shadowcorr: the paper's volumetric consensus; "
+                   "meanshift: the paper's no-network baseline")
+    p.add_argument("--bandwidth", type=float, help="MeanShift bandwidth of shadowcorr and meanshift (default 0.7; baseline 0.2)")
     p.add_argument("--no-split-components", action="store_true", help="keep disconnected blobs of one mask value together")
     p.add_argument("--min-blob-pixels", type=int, help="ignore blobs with fewer pixels (default 50)")
 
@@ -43,7 +45,7 @@ def _config(args: argparse.Namespace):
 
 
 def _model(args: argparse.Namespace):
-    if args.method == "meanshift":
+    if args.method in ("meanshift", "projection"):  # the methods without a network
         return None
     from .nn import load_model
 

@@ -68,7 +68,7 @@ class ShadowCorrConfig(BaseModel):
 
     # which method labels the segments (see METHODS)
     method: Literal["shadowcorr", "meanshift", "projection", "fused"] = Field(
-        "shadowcorr",
+        "fused",
         description="'shadowcorr': the paper's volumetric consensus (network + MeanShift); 'meanshift': the "
         "paper's no-network baseline; 'projection': the training-free cross-view check; 'fused': "
         "cross-view surface evidence and the network's volumetric evidence resolved together",

@@ -160,7 +160,7 @@ def test_cooccurrence_counts_shared_voxels():
 def test_every_segment_is_labelled_even_without_voxels(model):
     # A harsh consensus filter leaves many segments without a single kept voxel.
     bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII, cameras=3)
-    config = ShadowCorrConfig(gamma_percentile=97)
+    config = ShadowCorrConfig(method="shadowcorr", gamma_percentile=97)
     scene = prepare(bundle, config)
     orphans = set(range(scene.num_segments)) - set(scene.member_segment.tolist())
     assert orphans, "the test needs segments without kept voxels"
@@ -184,7 +184,7 @@ def test_real_sample_scene_with_reference_checkpoint():
     from shadowcorr.convert import load_ue_scene
 
     bundle = load_ue_scene(SAMPLE, 2001, [0, 2, 4, 6])
-    result = correspond(bundle, load_model(REFERENCE))
+    result = correspond(bundle, load_model(REFERENCE), ShadowCorrConfig(method="shadowcorr"))
     m = result.metrics
     assert len(result.segments) == 77 and m["num_rocks"] == 20
     assert m["coverage"] == 100.0
