@@ -75,7 +75,8 @@ def _connection_parent() -> argparse.ArgumentParser:
 def _options_parent() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(add_help=False)
     g = p.add_argument_group("correspondence options (server defaults when omitted)")
-    g.add_argument("--method", choices=["shadowcorr", "meanshift"], help="'meanshift' is the no-network baseline")
+    g.add_argument("--method", choices=["fused", "projection", "shadowcorr", "meanshift"],
+                   help="the server's default is 'fused'; 'projection' and 'meanshift' run no network")
     g.add_argument("--bandwidth", type=float, help="MeanShift bandwidth")
     g.add_argument("--no-split-components", action="store_true",
                    help="keep disconnected blobs of one mask value together")

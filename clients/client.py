@@ -43,7 +43,7 @@ DEFAULT_SERVER = "http://127.0.0.1:8000"
 #: Connecting is quick or hopeless; a large scene on a busy CPU server can take minutes to answer.
 DEFAULT_TIMEOUT = httpx.Timeout(connect=10.0, read=300.0, write=120.0, pool=None)
 
-Method = Literal["shadowcorr", "meanshift"]
+Method = Literal["fused", "projection", "shadowcorr", "meanshift"]
 
 
 def _user_agent() -> str:

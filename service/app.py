@@ -23,7 +23,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
 
 from shadowcorr import __version__
-from shadowcorr.config import REQUEST_OPTIONS, ShadowCorrConfig
+from shadowcorr.config import METHODS, REQUEST_OPTIONS, ShadowCorrConfig
 from shadowcorr.result import Result
 
 from .errors import ApiError, ErrorBody, install_error_handlers, problems_from_pydantic
@@ -46,8 +46,9 @@ def _query_model() -> type[BaseModel]:
     """
     fields: dict[str, Any] = {
         "method": (
-            Literal["shadowcorr", "meanshift"],
-            Field("shadowcorr", description="'shadowcorr' (the network) or 'meanshift' (the paper's baseline, no network)"),
+            Literal[METHODS],
+            Field(ShadowCorrConfig.model_fields["method"].default,
+                  description=ShadowCorrConfig.model_fields["method"].description),
         ),
         "metrics": (bool, Field(False, description="add ground-truth metrics to the result when the bundle has ground truth")),
     }

@@ -160,7 +160,7 @@ def _assign_scene(
 
 
 def _baseline(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool) -> bytes:
-    """The paper's MeanShift baseline: no network, so no batcher; one job does it all."""
+    """A method without a network ('projection', 'meanshift'): no batcher; one job does it all."""
     prepared = _decode_and_prepare(body, content_type, config, limits)
     return _assign_scene(prepared.scene, baseline_embeddings(prepared.scene), config, None, metrics,
                          {"decode": prepared.decode_ms})
@@ -189,8 +189,8 @@ def assign_scene(
 
 
 def baseline(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool) -> bytes:
-    """Decode, prepare and assign with the MeanShift baseline; returns the Result JSON bytes."""
-    return _guarded("the meanshift baseline", _baseline, body, content_type, config, limits, metrics)
+    """Decode, prepare and assign with a method without a network; returns the Result JSON bytes."""
+    return _guarded(f"method {config.method!r}", _baseline, body, content_type, config, limits, metrics)
 
 
 def warmup_scene() -> VoxelScene:

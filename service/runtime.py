@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from shadowcorr import __version__
-from shadowcorr.config import REQUEST_OPTIONS, ShadowCorrConfig
+from shadowcorr.config import METHODS, NETWORK_METHODS, REQUEST_OPTIONS, ShadowCorrConfig
 from shadowcorr.nn import Model, load_model
 from shadowcorr.pipeline import check_compatible, embed, model_info
 from shadowcorr.result import ModelInfo
@@ -196,7 +196,7 @@ class Runtime:
                 }
                 for name in _request_options()
             },
-            "methods": ["shadowcorr", "meanshift"],
+            "methods": list(METHODS),
             "units": self.base_config.units,
             "settings": s.public_dict(),
             **({"error": self.startup_error} if self.startup_error else {}),
@@ -239,7 +239,7 @@ class Runtime:
         stage = self.metrics.stage_latency
         t_start = time.perf_counter()
         try:
-            if config.method == "meanshift":
+            if config.method not in NETWORK_METHODS:
                 self.left_upstream(ticket)  # no network: never in the batcher
                 out = await self.pool.run(jobs.baseline, body, content_type, config, self.limits, metrics)
                 stage.labels("baseline").observe(time.perf_counter() - t_start)

@@ -217,7 +217,7 @@ def test_sample_scene_parts_and_zip_match_local(client, sample):
     assert a["metrics"] is None  # not asked for
     assert b["metrics"]["rock_purity"] == local.metrics["rock_purity"]
     assert a["model"]["sha256"] == client.get("/health").json()["model"]["sha256"]
-    assert {"decode", "network", "clustering"} <= set(b["timings_ms"])
+    assert {"decode", "network", "surface_evidence", "grouping"} <= set(b["timings_ms"])
 
 
 def test_concurrent_requests_are_batched(client, server, synthetic):
