@@ -248,7 +248,7 @@ def test_correspond_accepts_paths_bytes_and_in_memory_bundles(server, dataset):
         from_zip_path = client.correspond(dataset / "synth" / "s1.zip")
         from_zip_bytes = client.correspond((dataset / "synth" / "s1.zip").read_bytes(), metrics=True)
         baseline = client.correspond(scene, method="meanshift")
-    assert isinstance(from_memory, Result) and from_memory.method == "shadowcorr" and from_memory.model is not None
+    assert isinstance(from_memory, Result) and from_memory.method == "fused" and from_memory.model is not None
     assert len(from_memory.segments) == 4 * 3 and from_memory.metrics["rock_purity"] == 100.0
     assert from_dir.metrics is None  # only when asked for
     assert same_partition(from_memory.labels, from_zip_path.labels) and from_zip_bytes.labels == from_zip_path.labels
