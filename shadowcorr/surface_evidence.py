@@ -169,8 +169,8 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         rows, flat = rows[agree], flat[agree]
         src = seg[rows]
         target = labels.ravel()[flat].astype(np.int64)
-        if config.projection_pixel_tolerance > 0:
-            target = _nearest_label(labels, flat, target, config.projection_pixel_tolerance)
+        if config.pixel_tolerance > 0:
+            target = _nearest_label(labels, flat, target, config.pixel_tolerance)
         visible[:, j] = np.bincount(src, minlength=s)
         landed = target >= 0
         on_mask[:, j] = np.bincount(src[landed], minlength=s)
