@@ -172,8 +172,11 @@ def synth_config(rig: str, overrides: dict[str, Any]) -> Any:
 
 
 def rig_cache_dir(cache: Path, rig: str, config: Any, seed: int) -> Path:
-    """One folder per (rig, generator config, seed): a changed config never reuses stale scenes."""
-    key = json.dumps({"config": config.model_dump(mode="json"), "seed": seed}, sort_keys=True)
+    """One folder per (rig, generator config, seed): a changed config never reuses stale scenes.
+
+    The key holds only the fields set away from their defaults, so a generator that gains a
+    new knob (with a default) keeps finding the scenes already generated."""
+    key = json.dumps({"config": config.model_dump(mode="json", exclude_defaults=True), "seed": seed}, sort_keys=True)
     digest = hashlib.sha256(key.encode()).hexdigest()[:10]
     return cache / f"{rig.replace(':', '_')}-{digest}"
 
