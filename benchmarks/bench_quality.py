@@ -234,7 +234,8 @@ def segment_truth(bundle: Any, result: Any) -> np.ndarray:
 
 def wrong_segments(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
     """Segments in the wrong place: their object's majority rock is another rock, or they are
-    not in their rock's majority object (a merge or a split).  Segments without truth: False."""
+    not in their rock's majority object (a merge or a split), or unlabelled (< 0).  Segments
+    without truth: False."""
     scored = truth >= 0
     wrong = np.zeros(truth.size, dtype=bool)
     if not scored.any():
@@ -245,7 +246,7 @@ def wrong_segments(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
     obj_major = {int(o): int(r) for r, o in pairs[order][np.unique(pairs[order][:, 1], return_index=True)[1]]}
     order = np.lexsort((-counts, pairs[:, 0]))  # per rock: largest object first
     rock_major = {int(r): int(o) for r, o in pairs[order][np.unique(pairs[order][:, 0], return_index=True)[1]]}
-    wrong[scored] = [obj_major[int(o)] != int(r) or rock_major[int(r)] != int(o) for r, o in zip(t, p)]
+    wrong[scored] = [o < 0 or obj_major[int(o)] != int(r) or rock_major[int(r)] != int(o) for r, o in zip(t, p)]
     return wrong
 
 

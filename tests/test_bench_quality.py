@@ -110,6 +110,7 @@ def test_wrong_segments_and_conditions():
     truth = np.array([1, 1, 1, 2, 2, 2, 3, -1])
     pred = np.array([0, 0, 5, 0, 1, 1, 2, 0])  # rock 1 split (seg 2), rock 2's seg 3 merged into rock 1's object
     assert bench.wrong_segments(truth, pred).tolist() == [False, False, True, True, False, False, False, False]
+    assert bench.wrong_segments(np.array([4, 4, 4]), np.array([-1, 3, 3])).tolist() == [True, False, False]
     names = [c.name for c in bench.all_conditions(quick=False)]
     assert len(names) == len(set(names))
     assert {"syn:4v", "syn:8v", "real:all8", "syn:4v+depth2%", "real:0246+merge10%"} <= set(names)
