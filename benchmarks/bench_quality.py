@@ -204,10 +204,17 @@ class Task:
     rig: str
     scene: str  # cached bundle directory (synthetic) or the dataset folder (real)
     scene_index: int
+    scene_name: str  # the bundle's name: synth_<generator seed of the scene> or ue_set2001
     conditions: list[tuple[str, str | None, int]]  # (condition name, perturbation, perturbation seed)
     methods: list[str]
     cameras: tuple[int, ...] | None = None  # real scene only
+    done: frozenset[tuple[str, str]] = frozenset()  # (condition, method) runs kept from an earlier run
     records: list[dict[str, Any]] = field(default_factory=list)
+
+
+def run_key(record: dict[str, Any]) -> tuple:
+    """What identifies one run across invocations: condition, scene, perturbation seed, method."""
+    return record["condition"], record["scene_name"], record["perturbation_seed"], record["method"]
 
 
 def perturbation_seed(scene_key: str, perturbation: str, repeat: int) -> int:
@@ -287,10 +294,14 @@ def run_task(task: Task) -> Task:
 
     clean = load_ue_scene(task.scene, REAL_SET, task.cameras) if task.cameras else shadowcorr.load_bundle(task.scene)
     for name, perturbation, seed in task.conditions:
+        methods = [m for m in task.methods if (name, m) not in task.done]
+        if not methods:
+            continue
         bundle = clean if perturbation is None else perturb(clean, perturbation, seed)
-        for method in task.methods:
+        for method in methods:
             base = {"condition": name, "rig": task.rig, "perturbation": perturbation, "scene": task.scene_index,
-                    "scene_name": clean.name, "perturbation_seed": seed if perturbation else None, "method": method}
+                    "scene_name": task.scene_name, "perturbation_seed": seed if perturbation else None,
+                    "method": method}
             t0, c0 = time.perf_counter(), time.process_time()
             try:
                 result = shadowcorr.correspond(bundle, _MODEL, config=ShadowCorrConfig().with_options(method=method),
@@ -307,8 +318,12 @@ def run_task(task: Task) -> Task:
 
 
 def build_tasks(conditions: list[Condition], methods: list[str], scenes: dict[str, list[Path]],
-                real_dir: Path, real_repeats: int) -> list[Task]:
-    """One task per clean synthetic scene, and per (real rig, perturbation repeat)."""
+                real_dir: Path, real_repeats: int, dataset_seed: int, kept: Iterable[tuple] = ()) -> list[Task]:
+    """One task per clean synthetic scene, and per (real rig, perturbation repeat); runs whose
+    ``run_key`` is in ``kept`` are left out (and tasks left with nothing to do)."""
+    from shadowcorr.synth import scene_seed
+
+    kept = set(kept)
     by_rig: dict[str, list[Condition]] = {}
     for c in conditions:
         by_rig.setdefault(c.rig, []).append(c)
@@ -317,15 +332,18 @@ def build_tasks(conditions: list[Condition], methods: list[str], scenes: dict[st
         if rig in SYNTH_RIGS:
             for i, path in enumerate(scenes[rig]):
                 runs = [(c.name, c.perturbation, perturbation_seed(f"{rig}/{i}", c.perturbation or "", 0)) for c in conds]
-                tasks.append(Task(rig, str(path), i, runs, methods))
+                tasks.append(Task(rig, str(path), i, f"synth_{scene_seed(dataset_seed, i)}", runs, methods))
         else:
             cams = REAL_RIGS[rig][1]
             for k in range(real_repeats):  # clean and deterministic rows once, random perturbations per seed
                 runs = [(c.name, c.perturbation, perturbation_seed(rig, c.perturbation or "", k))
                         for c in conds if k == 0 or (c.perturbation is not None and c.perturbation not in DETERMINISTIC)]
                 if runs:
-                    tasks.append(Task(rig, str(real_dir), k, runs, methods, cameras=cams))
-    return tasks
+                    tasks.append(Task(rig, str(real_dir), k, f"ue_set{REAL_SET}", runs, methods, cameras=cams))
+    for t in tasks:
+        t.done = frozenset((name, m) for name, pert, seed in t.conditions for m in methods
+                           if (name, t.scene_name, seed if pert else None, m) in kept)
+    return [t for t in tasks if len(t.done) < len(t.conditions) * len(methods)]
 
 
 def evaluate(tasks: list[Task], workers: int, model_path: str | None, threads: int,
@@ -437,6 +455,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--synth", default="{}", help="JSON of SynthConfig fields applied to every synthetic rig "
                    "before the rig's own (e.g. '{\"renderer\": \"raster\"}')")
     p.add_argument("--generate-only", action="store_true", help="fill the scene cache, evaluate nothing")
+    p.add_argument("--resume", action="store_true", help="keep the runs already in OUT/records.jsonl (same "
+                   "condition, scene, perturbation seed and method; failed ones are run again) and run the rest")
     p.add_argument("--list", action="store_true", help="print the conditions and exit")
     return p.parse_args(argv)
 
@@ -471,39 +491,46 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    tasks = build_tasks(conditions, methods, scenes, Path(args.real), repeats)
-    total = sum(len(t.conditions) for t in tasks) * len(methods)
-    records: list[dict[str, Any]] = []
-    print(f"{len(conditions)} conditions x {len(methods)} methods: {total} runs in {len(tasks)} tasks, "
-          f"{args.workers} worker(s)", flush=True)
+    records_path = out / "records.jsonl"
+    wanted = {c.name for c in conditions}
+    old = [json.loads(line) for line in records_path.read_text().splitlines()] if args.resume and records_path.exists() else []
+    records = [r for r in old if "error" not in r and r["condition"] in wanted and r["method"] in methods]
+    tasks = build_tasks(conditions, methods, scenes, Path(args.real), repeats, args.seed, map(run_key, records))
+    todo = sum(len(t.conditions) * len(methods) - len(t.done) for t in tasks)
+    print(f"{len(conditions)} conditions x {len(methods)} methods: {todo} runs in {len(tasks)} tasks"
+          f"{f' ({len(records)} kept from {records_path})' if records else ''}, {args.workers} worker(s)", flush=True)
+    with open(records_path, "w") as f:  # kept runs now, each task's runs as it finishes (an interrupted run resumes)
+        f.writelines(json.dumps(r) + "\n" for r in records)
 
     def done(task: Task) -> None:
         records.extend(task.records)
-        print(f"  [{len(records)}/{total}] {task.rig} scene {task.scene_index} "
-              f"({time.perf_counter() - t_generated:.0f} s)", flush=True)
+        with open(records_path, "a") as f:
+            f.writelines(json.dumps(r) + "\n" for r in task.records)
+        print(f"  [{len(records)}] {task.rig} scene {task.scene_index} ({time.perf_counter() - t_generated:.0f} s)",
+              flush=True)
 
     evaluate(tasks, args.workers, args.model, args.threads, done)
     t_end = time.perf_counter()
 
     order = {c.name: i for i, c in enumerate(conditions)}
     records.sort(key=lambda r: (order[r["condition"]], r["scene"], r["perturbation_seed"] or 0, methods.index(r["method"])))
-    with open(out / "records.jsonl", "w") as f:
-        for r in records:
-            f.write(json.dumps(r) + "\n")
+    with open(records_path, "w") as f:
+        f.writelines(json.dumps(r) + "\n" for r in records)
     summary = summarize_cells(records)
     command = "python benchmarks/bench_quality.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cpu = sum(r.get("cpu_ms", 0.0) for r in records) / 1e3
+    seconds = {"generation": round(t_generated - t_start, 1), "evaluation": round(t_end - t_generated, 1),
+               "cpu_in_method_calls": round(cpu, 1)}
     (out / "summary.json").write_text(json.dumps(
-        {"command": command, "methods": methods, "cpu_seconds": round(sum(r.get("cpu_ms", 0.0) for r in records) / 1e3, 1), "conditions": [c.name for c in conditions],
-         "synth_seed": args.seed, "scenes_per_cell": n_scenes, "real_repeats": repeats, "cells": summary,
-         "seconds": {"generation": round(t_generated - t_start, 1), "evaluation": round(t_end - t_generated, 1)}},
+        {"command": command, "methods": methods, "conditions": [c.name for c in conditions], "synth_seed": args.seed,
+         "scenes_per_cell": n_scenes, "real_repeats": repeats, "seconds": seconds, "cells": summary},
         indent=1, allow_nan=True))
     table = render_tables(summary, conditions, methods)
-    cpu = sum(r.get("cpu_ms", 0.0) for r in records) / 1e3
     header = (f"Quality benchmark: `{command.strip()}`  \n{n_scenes} synthetic scenes per cell (generator seed "
               f"{args.seed}), the real scene's random perturbations over {repeats} seeds; mean ± std.  \n"
               f"Evaluation {t_end - t_generated:.0f} s wall with {args.workers} worker(s) "
-              f"({cpu:.0f} CPU s in the method calls: {cpu / args.workers:.0f} s on {args.workers} idle cores), "
-              f"generation {t_generated - t_start:.0f} s\n\n")
+              f"({cpu:.0f} CPU s in the method calls of all {len(records)} runs: {cpu / args.workers:.0f} s "
+              f"on {args.workers} idle cores), generation {t_generated - t_start:.0f} s\n\n")
     (out / "table.md").write_text(header + table)
     print()
     print(header + table)

@@ -99,10 +99,16 @@ def test_tables_agree_with_records(run, capsys):
             assert stats["flag_precision"] == pytest.approx(expected, nan_ok=True)
 
 
-def test_rerun_reuses_the_cache(run, capsys):
+def test_rerun_reuses_cache_and_records(run, capsys):
     bench, argv, tmp = run
     assert bench.main([*argv, "--generate-only"]) == 0
     assert "generating" not in capsys.readouterr().out
+    before = (tmp / "out" / "records.jsonl").read_text()
+    # --resume with every run already recorded: nothing runs, the same records and table come out
+    assert bench.main([*argv, "--resume"]) == 0
+    printed = capsys.readouterr().out
+    assert "0 runs in 0 tasks (16 kept" in printed
+    assert (tmp / "out" / "records.jsonl").read_text() == before
 
 
 def test_wrong_segments_and_conditions():
