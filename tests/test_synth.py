@@ -339,3 +339,12 @@ def test_library_imports_without_mujoco():
     code = "import sys; sys.modules['mujoco'] = None; import shadowcorr, shadowcorr.synth, shadowcorr.synth.cli; print('ok')"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr
+
+
+def test_rig_at_explicit_uneven_azimuths():
+    offsets = (0.0, 35.0, 100.0, 160.0, 235.0, 290.0)
+    cams = make_rig(np.random.default_rng(0), n_cameras=6, start_deg=20.0, azimuths_deg=offsets, radius_jitter=0.0)
+    azimuths = [np.degrees(np.arctan2(c.pose[1, 3], c.pose[0, 3])) % 360 for c in cams]
+    assert np.allclose(azimuths, [(20.0 + a) % 360 for a in offsets])
+    with pytest.raises(ValueError, match="azimuths_deg"):
+        SynthConfig(cameras=4, azimuths_deg=offsets)

@@ -11,6 +11,7 @@ the camera frame.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -76,6 +77,7 @@ def make_rig(
     height: float = 329.0,
     arc_deg: float = 360.0,
     start_deg: float | None = None,
+    azimuths_deg: Sequence[float] | None = None,
     pitch_deg: tuple[float, float] = (21.0, 27.0),
     radius_jitter: float = 0.05,
     width: int = 1920,
@@ -90,11 +92,19 @@ def make_rig(
     so the field sits a little above or below the image centre as in the real views.
     ``radius_jitter`` varies each camera's distance by up to ±5 % (the real ring is not
     a perfect circle).  ``start_deg`` None = random rotation of the whole ring.
+    ``azimuths_deg`` (one per camera, relative to the start) places the cameras at
+    uneven angles instead of spreading them evenly over ``arc_deg``.
     """
     centre = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
     start = rng.uniform(0.0, 360.0) if start_deg is None else start_deg
+    if azimuths_deg is None:
+        azimuths = ring_azimuths(n_cameras, arc_deg, start)
+    elif len(azimuths_deg) != n_cameras:
+        raise ValueError(f"azimuths_deg has {len(azimuths_deg)} entries for {n_cameras} cameras")
+    else:
+        azimuths = start + np.asarray(azimuths_deg, dtype=np.float64)
     cams = []
-    for k, az in enumerate(np.deg2rad(ring_azimuths(n_cameras, arc_deg, start))):
+    for k, az in enumerate(np.deg2rad(azimuths)):
         r = radius * (1.0 + rng.uniform(-radius_jitter, radius_jitter))
         eye = centre + np.array([r * np.cos(az), r * np.sin(az), height])
         pitch = np.deg2rad(rng.uniform(*pitch_deg))

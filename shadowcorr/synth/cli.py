@@ -68,6 +68,9 @@ def add_synth_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     p.add_argument("--rocks", type=_pair(int), help="rocks per scene as LO,HI (default 18,20)")
     p.add_argument("--diameter", type=_pair(float), help="rock diameter range LO,HI (default 36,157)")
     p.add_argument("--pitch-deg", type=_pair(float), help="camera pitch range LO,HI (default 21,27)")
+    p.add_argument("--azimuths-deg", type=lambda t: tuple(float(a) for a in t.replace(",", " ").split()),
+                   help="explicit camera azimuths relative to --start-deg, e.g. 0,40,110,170,250,300 "
+                   "(one per camera: uneven rigs)")
     for flag, _, kind, text in _SCALARS:
         p.add_argument(flag, type=kind, default=None, help=text)
     p.add_argument("--resume", action="store_true", help="skip scenes that already have a manifest")
@@ -85,7 +88,8 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
         value = getattr(args, flag.lstrip("-").replace("-", "_"))
         if value is not None:
             fields[name] = value
-    for attr, name in (("rocks", "n_rocks"), ("diameter", "rock_diameter"), ("pitch_deg", "pitch_deg")):
+    for attr, name in (("rocks", "n_rocks"), ("diameter", "rock_diameter"), ("pitch_deg", "pitch_deg"),
+                       ("azimuths_deg", "azimuths_deg")):
         if getattr(args, attr, None) is not None:
             fields[name] = getattr(args, attr)
     return SynthConfig.model_validate(fields)

@@ -49,6 +49,10 @@ class SynthConfig(BaseModel):
     camera_height: float = Field(329.0, description="camera height above the scene centre")
     arc_deg: float = Field(360.0, gt=0, le=360, description="ring coverage: 360 = all round, 180, 90, ...")
     start_deg: float | None = Field(None, description="azimuth of the first camera; None = random")
+    azimuths_deg: tuple[float, ...] | None = Field(
+        None, description="explicit camera azimuths relative to start_deg (uneven rigs); one per camera, "
+        "replaces the even spacing over arc_deg"
+    )
     pitch_deg: tuple[float, float] = Field((21.0, 27.0), description="downward pitch range")
     width: int = Field(1920, ge=8, le=8192)
     height: int = Field(1080, ge=8, le=8192)
@@ -93,6 +97,8 @@ class SynthConfig(BaseModel):
             raise ValueError("pitch_deg must lie in (0, 90)")
         if self.field_radius + self.rock_diameter[1] >= self.terrain_half_size:
             raise ValueError("terrain_half_size must exceed field_radius + the largest rock diameter")
+        if self.azimuths_deg is not None and len(self.azimuths_deg) != self.cameras:
+            raise ValueError(f"azimuths_deg has {len(self.azimuths_deg)} entries for {self.cameras} cameras")
         if self.min_views > self.cameras:
             raise ValueError("min_views cannot exceed cameras")
         return self

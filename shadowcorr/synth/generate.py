@@ -99,7 +99,7 @@ def synthesize(config: SynthConfig, seed: int) -> SynthScene:
     )
     cameras = make_rig(
         rng_cams, n_cameras=config.cameras, radius=config.radius, height=config.camera_height,
-        arc_deg=config.arc_deg, start_deg=config.start_deg, pitch_deg=config.pitch_deg,
+        arc_deg=config.arc_deg, start_deg=config.start_deg, azimuths_deg=config.azimuths_deg, pitch_deg=config.pitch_deg,
         radius_jitter=config.radius_jitter, width=config.width, height_px=config.height,
         focal_px=config.focal_px,
     )

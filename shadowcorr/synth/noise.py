@@ -12,11 +12,13 @@ import numpy as np
 from scipy import ndimage
 
 
-def noisy_depth(rng: np.random.Generator, depth: np.ndarray, sigma: float, quantum: float) -> np.ndarray:
-    """Add N(0, sigma) to valid depth, then round to ``quantum``; invalid pixels stay 0."""
+def noisy_depth(rng: np.random.Generator, depth: np.ndarray, sigma: float | np.ndarray, quantum: float) -> np.ndarray:
+    """Add N(0, sigma) to valid depth, then round to ``quantum``; invalid pixels stay 0.
+
+    ``sigma`` is one value or one per pixel (e.g. growing with depth)."""
     valid = depth > 0
     out = depth.astype(np.float64)
-    if sigma > 0:
+    if np.any(np.asarray(sigma) > 0):
         out = out + rng.normal(scale=sigma, size=out.shape)
     if quantum > 0:
         out = np.round(out / quantum) * quantum
@@ -24,7 +26,7 @@ def noisy_depth(rng: np.random.Generator, depth: np.ndarray, sigma: float, quant
     return np.where(valid, np.maximum(out, 1e-3), 0.0).astype(np.float32)
 
 
-def _rotation_from_vector(rv: np.ndarray) -> np.ndarray:
+def rotation_from_vector(rv: np.ndarray) -> np.ndarray:
     """Rodrigues: rotation vector (axis * angle in radians) -> 3x3 matrix."""
     angle = float(np.linalg.norm(rv))
     if angle < 1e-15:
@@ -40,7 +42,7 @@ def noisy_pose(rng: np.random.Generator, pose: np.ndarray, sigma_t: float, sigma
     of ``sigma_t`` per axis.  The image stays rendered from the true pose."""
     out = pose.copy()
     if sigma_rot_deg > 0:
-        out[:3, :3] = _rotation_from_vector(rng.normal(scale=np.deg2rad(sigma_rot_deg), size=3)) @ pose[:3, :3]
+        out[:3, :3] = rotation_from_vector(rng.normal(scale=np.deg2rad(sigma_rot_deg), size=3)) @ pose[:3, :3]
     if sigma_t > 0:
         out[:3, 3] = pose[:3, 3] + rng.normal(scale=sigma_t, size=3)
     return out

@@ -1,0 +1,542 @@
+"""Quality of every correspondence method across camera rigs, sensor noise and segmenter errors.
+
+    python benchmarks/bench_quality.py --quick                      # minutes: a subset, 3 scenes per cell
+    python benchmarks/bench_quality.py                              # the full table, 30 scenes per cell
+    python benchmarks/bench_quality.py --methods shadowcorr,projection --conditions 'syn:4v*,real:*'
+    python benchmarks/bench_quality.py --list                       # the conditions and what they are
+
+Rows are conditions, columns are methods.  A condition is a scene source and rig (synthetic
+scenes from ``shadowcorr.synth`` on several rigs, or the real sample scene with several camera
+subsets) optionally followed by ``+perturbation`` (``shadowcorr.synth.perturb``: depth noise,
+holes, pose errors, mask erosion/dilation/splits/merges/drops), applied in memory to the
+clean scene with a fixed seed.  Each method runs through the public API,
+``shadowcorr.correspond(bundle, model, config=ShadowCorrConfig().with_options(method=m))``;
+a method this installation does not accept is skipped with one line.
+
+Synthetic scenes use generator seeds training never saw (dataset seed 9001; the shipped
+model was trained, validated and tested on 1001, 2002 and 3003) and are cached under
+``--cache`` (one folder per rig config), so reruns only evaluate.  The rigs of one scene
+index share the same rock field (the generator draws cameras from their own stream).
+
+Output: one Markdown table per metric (mean ± std over scenes; the real scene's noisy rows
+over perturbation seeds) on stdout and in ``OUT/table.md``; every (scene, condition,
+method) run in ``OUT/records.jsonl``; the aggregated numbers in ``OUT/summary.json``.
+Times are the CPU time of each ``correspond`` call on one torch thread (on a shared machine
+the wall time, recorded too with the library's ``timings_ms["total"]``, measures the other
+load as much as the method).
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import hashlib
+import json
+import math
+import multiprocessing as mp
+import os
+import sys
+import time
+import zlib
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "examples" / "ue_sample"  # ships with the repository
+REAL_SET = "2001"
+
+#: Generator seed of the benchmark's synthetic scenes (training used 1001, 2002, 3003).
+SYNTH_SEED = 9001
+#: Mixed into every perturbation seed, so perturbations never reuse a generator stream.
+PERTURB_SEED = 77
+DEFAULT_METHODS = ("shadowcorr", "meanshift", "projection", "fused")
+#: Flag threshold for the support -> "is this segment wrong?" precision/recall columns.
+SUPPORT_FLAG = 0.6
+
+# ---------------------------------------------------------------- conditions
+#: Synthetic rigs: SynthConfig fields over the defaults (4 cameras 90 degrees apart, 329 cm high,
+#: pitch 21-27 degrees, 1920x1080, f = 1615 px).
+SYNTH_RIGS: dict[str, tuple[str, dict[str, Any]]] = {
+    "syn:4v": ("4 views 90° apart (default rig)", {}),
+    "syn:3v-arc90": ("3 views on a 90° arc", {"cameras": 3, "arc_deg": 90.0}),
+    "syn:8v": ("8 views 45° apart", {"cameras": 8}),
+    "syn:2v-opposite": ("2 opposite views", {"cameras": 2}),
+    "syn:4v-low": ("4 views, cameras 80 cm high, pitch 3-9°", {"camera_height": 80.0, "pitch_deg": (3.0, 9.0)}),
+    "syn:4v-high": ("4 views, cameras 700 cm high, pitch 40-46°", {"camera_height": 700.0, "pitch_deg": (40.0, 46.0)}),
+    "syn:6v-uneven": ("6 views at 0, 35, 100, 160, 235, 290°",
+                      {"cameras": 6, "azimuths_deg": (0.0, 35.0, 100.0, 160.0, 235.0, 290.0)}),
+    "syn:4v-720p": ("4 views, 1280x720, f = 900 px", {"width": 1280, "height": 720, "focal_px": 900.0}),
+}
+#: Real sample scene (set 2001): camera subsets of its 8-camera ring (45 degrees apart).
+REAL_RIGS: dict[str, tuple[str, tuple[int, ...]]] = {
+    "real:0246": ("real scene, cameras 0,2,4,6", (0, 2, 4, 6)),
+    "real:012": ("real scene, cameras 0,1,2", (0, 1, 2)),
+    "real:all8": ("real scene, all 8 cameras", tuple(range(8))),
+    "real:04": ("real scene, cameras 0,4 (opposite)", (0, 4)),
+    "real:013467": ("real scene, 6 uneven cameras 0,1,3,4,6,7", (0, 1, 3, 4, 6, 7)),
+}
+#: Perturbations: name -> (description, function name in shadowcorr.synth.perturb, keyword arguments).
+PERTURBATIONS: dict[str, tuple[str, str, dict[str, Any]]] = {
+    "depth0.5%": ("depth noise σ = 0.5 % of depth at 7.5 m (∝ z²)", "depth_noise", {"fraction": 0.005}),
+    "depth1%": ("depth noise σ = 1 % of depth at 7.5 m (∝ z²)", "depth_noise", {"fraction": 0.01}),
+    "depth2%": ("depth noise σ = 2 % of depth at 7.5 m (∝ z²)", "depth_noise", {"fraction": 0.02}),
+    "holes10%": ("10 % of valid depth pixels invalid, in ~16 px blobs", "depth_holes", {"fraction": 0.10}),
+    "rot0.25": ("each camera rotated 0.25° (random axis)", "pose_error", {"rotation_deg": 0.25}),
+    "rot0.5": ("each camera rotated 0.5°", "pose_error", {"rotation_deg": 0.5}),
+    "rot1": ("each camera rotated 1°", "pose_error", {"rotation_deg": 1.0}),
+    "rot2": ("each camera rotated 2°", "pose_error", {"rotation_deg": 2.0}),
+    "trans1cm": ("each camera moved 1 cm (random direction)", "pose_error", {"translation_cm": 1.0}),
+    "trans5cm": ("each camera moved 5 cm", "pose_error", {"translation_cm": 5.0}),
+    "erode2": ("masks eroded 2 px", "morph_masks", {"px": -2}),
+    "erode5": ("masks eroded 5 px", "morph_masks", {"px": -5}),
+    "dilate2": ("masks dilated 2 px", "morph_masks", {"px": 2}),
+    "dilate5": ("masks dilated 5 px", "morph_masks", {"px": 5}),
+    "split20%": ("20 % of masks split by a line", "split_masks", {"share": 0.20}),
+    "merge10%": ("10 % of touching mask pairs merged", "merge_touching", {"share": 0.10}),
+    "drop10%": ("10 % of masks dropped", "drop_masks", {"share": 0.10}),
+}
+#: Perturbations that use no randomness: the real scene's repeats would all be the same run.
+DETERMINISTIC = frozenset(name for name, (_, fn, _) in PERTURBATIONS.items() if fn == "morph_masks")
+#: The rigs the perturbations are applied to (by default).
+NOISE_RIGS = ("syn:4v", "real:0246")
+QUICK_PERTURBATIONS = ("depth1%", "rot1", "erode5", "split20%", "merge10%")
+QUICK_RIGS = ("syn:4v", *REAL_RIGS)
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One row: a rig (synthetic or real) and an optional perturbation."""
+
+    rig: str
+    perturbation: str | None = None
+
+    @property
+    def name(self) -> str:
+        return self.rig if self.perturbation is None else f"{self.rig}+{self.perturbation}"
+
+    @property
+    def description(self) -> str:
+        rig = (SYNTH_RIGS.get(self.rig) or REAL_RIGS[self.rig])[0]
+        return rig if self.perturbation is None else f"{rig}; {PERTURBATIONS[self.perturbation][0]}"
+
+
+def all_conditions(quick: bool, noise_rigs: Sequence[str] = NOISE_RIGS) -> list[Condition]:
+    """Every row of the table, in print order: synthetic rigs, their noise, real rigs, their noise."""
+    rigs = [r for r in (*SYNTH_RIGS, *REAL_RIGS) if not quick or r in QUICK_RIGS]
+    perturbations = QUICK_PERTURBATIONS if quick else tuple(PERTURBATIONS)
+    rows = []
+    for kind in ("syn:", "real:"):
+        for rig in (r for r in rigs if r.startswith(kind)):
+            rows.append(Condition(rig))
+        for rig in (r for r in rigs if r.startswith(kind) and r in noise_rigs):
+            rows.extend(Condition(rig, p) for p in perturbations)
+    return rows
+
+
+def select(conditions: list[Condition], patterns: str | None) -> list[Condition]:
+    """Conditions whose name matches one of the comma-separated glob ``patterns`` (all if None)."""
+    if not patterns:
+        return conditions
+    pats = [p.strip() for p in patterns.split(",") if p.strip()]
+    return [c for c in conditions if any(fnmatch.fnmatchcase(c.name, p) for p in pats)]
+
+
+# ---------------------------------------------------------------- methods
+def accepted_methods(requested: Iterable[str]) -> list[str]:
+    """The requested methods this installation's ``ShadowCorrConfig`` accepts; one line per skipped one."""
+    from pydantic import ValidationError
+
+    from shadowcorr import ShadowCorrConfig
+
+    ok = []
+    for m in requested:
+        try:
+            ShadowCorrConfig().with_options(method=m)
+        except ValidationError:
+            print(f"skipping method {m!r}: not accepted by this shadowcorr's ShadowCorrConfig.method")
+            continue
+        ok.append(m)
+    return ok
+
+
+# ---------------------------------------------------------------- synthetic scenes
+def synth_config(rig: str, overrides: dict[str, Any]) -> Any:
+    """SynthConfig of a synthetic rig: the benchmark-wide ``overrides`` then the rig's own fields."""
+    from shadowcorr.synth import SynthConfig
+
+    return SynthConfig.model_validate({**overrides, **SYNTH_RIGS[rig][1]})
+
+
+def rig_cache_dir(cache: Path, rig: str, config: Any, seed: int) -> Path:
+    """One folder per (rig, generator config, seed): a changed config never reuses stale scenes.
+
+    The key holds only the fields set away from their defaults, so a generator that gains a
+    new knob (with a default) keeps finding the scenes already generated."""
+    key = json.dumps({"config": config.model_dump(mode="json", exclude_defaults=True), "seed": seed}, sort_keys=True)
+    digest = hashlib.sha256(key.encode()).hexdigest()[:10]
+    return cache / f"{rig.replace(':', '_')}-{digest}"
+
+
+def ensure_scenes(cache: Path, rig: str, config: Any, n: int, seed: int, workers: int) -> list[Path]:
+    """The first ``n`` scenes of the rig's dataset, generated only where missing."""
+    from shadowcorr.synth import generate_dataset
+
+    out = rig_cache_dir(cache, rig, config, seed)
+    paths = [out / f"scene_{i:05d}" for i in range(n)]
+    missing = [p for p in paths if not (p / "manifest.json").exists()]
+    if missing:
+        print(f"generating {len(missing)} scene(s) of {rig} into {out} ...", flush=True)
+        t0 = time.perf_counter()
+        generate_dataset(config, n, out, seed=seed, workers=workers, progress=False, resume=True)
+        print(f"  done in {time.perf_counter() - t0:.0f} s", flush=True)
+    return paths
+
+
+# ---------------------------------------------------------------- evaluation
+@dataclass
+class Task:
+    """All runs on one clean scene: it is loaded once, then perturbed and labelled per condition."""
+
+    rig: str
+    scene: str  # cached bundle directory (synthetic) or the dataset folder (real)
+    scene_index: int
+    scene_name: str  # the bundle's name: synth_<generator seed of the scene> or ue_set2001
+    conditions: list[tuple[str, str | None, int]]  # (condition name, perturbation, perturbation seed)
+    methods: list[str]
+    cameras: tuple[int, ...] | None = None  # real scene only
+    done: frozenset[tuple[str, str]] = frozenset()  # (condition, method) runs kept from an earlier run
+    records: list[dict[str, Any]] = field(default_factory=list)
+
+
+def run_key(record: dict[str, Any]) -> tuple:
+    """What identifies one run across invocations: condition, scene, perturbation seed, method."""
+    return record["condition"], record["scene_name"], record["perturbation_seed"], record["method"]
+
+
+def perturbation_seed(scene_key: str, perturbation: str, repeat: int) -> int:
+    """Fixed seed of one perturbation of one scene (stable across runs and machines)."""
+    return int(np.random.SeedSequence([PERTURB_SEED, zlib.crc32(scene_key.encode()),
+                                       zlib.crc32(perturbation.encode()), repeat]).generate_state(1)[0])
+
+
+def perturb(bundle: Any, perturbation: str, seed: int) -> Any:
+    from shadowcorr.synth import perturb as perturbations
+
+    _, fn, kwargs = PERTURBATIONS[perturbation]
+    return getattr(perturbations, fn)(bundle, np.random.default_rng(seed), **kwargs)
+
+
+def segment_truth(bundle: Any, result: Any) -> np.ndarray:
+    """True object of every result segment (-1 = none), from the bundle's ground truth (scoring only)."""
+    views = {v.name: v for v in bundle.views}
+    if bundle.ground_truth == "instance":
+        return np.array([s.instance for s in result.segments], dtype=np.int64)
+    return np.array([(views[s.view].instance_objects or {}).get(s.instance, -1) for s in result.segments],
+                    dtype=np.int64)
+
+
+def wrong_segments(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """Segments in the wrong place: their object's majority rock is another rock, or they are
+    not in their rock's majority object (a merge or a split), or unlabelled (< 0).  Segments
+    without truth: False."""
+    scored = truth >= 0
+    wrong = np.zeros(truth.size, dtype=bool)
+    if not scored.any():
+        return wrong
+    t, p = truth[scored], pred[scored]
+    pairs, counts = np.unique(np.stack([t, p], axis=1), axis=0, return_counts=True)
+    order = np.lexsort((-counts, pairs[:, 1]))  # per object: largest rock first
+    obj_major = {int(o): int(r) for r, o in pairs[order][np.unique(pairs[order][:, 1], return_index=True)[1]]}
+    order = np.lexsort((-counts, pairs[:, 0]))  # per rock: largest object first
+    rock_major = {int(r): int(o) for r, o in pairs[order][np.unique(pairs[order][:, 0], return_index=True)[1]]}
+    wrong[scored] = [o < 0 or obj_major[int(o)] != int(r) or rock_major[int(r)] != int(o) for r, o in zip(t, p)]
+    return wrong
+
+
+def support_flag_scores(bundle: Any, result: Any) -> dict[str, float | int]:
+    """How well ``support < SUPPORT_FLAG`` finds the wrong segments: counts for precision and recall."""
+    truth = segment_truth(bundle, result)
+    wrong = wrong_segments(truth, np.array(result.labels, dtype=np.int64))
+    flagged = np.array([s.support < SUPPORT_FLAG for s in result.segments], dtype=bool) & (truth >= 0)
+    return {"wrong_segments": int(wrong.sum()), "flagged_segments": int(flagged.sum()),
+            "flagged_wrong": int((flagged & wrong).sum())}
+
+
+_MODEL = None
+
+
+def _init_worker(model_path: str | None, threads: int) -> None:
+    """Per worker process: threads, then the model, loaded once."""
+    global _MODEL
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(threads)
+    import torch
+
+    import shadowcorr
+
+    from shadowcorr.synth.spheres import sphere_scene
+
+    torch.set_num_threads(threads)
+    _MODEL = shadowcorr.load_model(model_path)
+    # Warm-up (lazy imports, first-call allocations) so the first scene's time is not inflated.
+    shadowcorr.correspond(sphere_scene([[0, 0, 40], [90, 0, 40]], [40, 45]), _MODEL, metrics=False)
+
+
+def run_task(task: Task) -> Task:
+    """Load the scene, then every (condition, method) run on it; one record each."""
+    import shadowcorr
+    from shadowcorr import ShadowCorrConfig
+    from shadowcorr.convert import load_ue_scene
+
+    clean = load_ue_scene(task.scene, REAL_SET, task.cameras) if task.cameras else shadowcorr.load_bundle(task.scene)
+    for name, perturbation, seed in task.conditions:
+        methods = [m for m in task.methods if (name, m) not in task.done]
+        if not methods:
+            continue
+        bundle = clean if perturbation is None else perturb(clean, perturbation, seed)
+        for method in methods:
+            base = {"condition": name, "rig": task.rig, "perturbation": perturbation, "scene": task.scene_index,
+                    "scene_name": task.scene_name, "perturbation_seed": seed if perturbation else None,
+                    "method": method}
+            t0, c0 = time.perf_counter(), time.process_time()
+            try:
+                result = shadowcorr.correspond(bundle, _MODEL, config=ShadowCorrConfig().with_options(method=method),
+                                               metrics=True)
+            except Exception as err:  # a method failing on one scene is a finding, not a crash of the table
+                task.records.append({**base, "error": f"{type(err).__name__}: {err}"})
+                continue
+            wall, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+            task.records.append({
+                **base, **(result.metrics or {}), **support_flag_scores(bundle, result),
+                "time_ms": result.timings_ms.get("total", wall), "wall_ms": wall, "cpu_ms": cpu,
+            })
+    return task
+
+
+def build_tasks(conditions: list[Condition], methods: list[str], scenes: dict[str, list[Path]],
+                real_dir: Path, real_repeats: int, dataset_seed: int, kept: Iterable[tuple] = ()) -> list[Task]:
+    """One task per clean synthetic scene, and per (real rig, perturbation repeat); runs whose
+    ``run_key`` is in ``kept`` are left out (and tasks left with nothing to do)."""
+    from shadowcorr.synth import scene_seed
+
+    kept = set(kept)
+    by_rig: dict[str, list[Condition]] = {}
+    for c in conditions:
+        by_rig.setdefault(c.rig, []).append(c)
+    tasks = []
+    for rig, conds in by_rig.items():
+        if rig in SYNTH_RIGS:
+            for i, path in enumerate(scenes[rig]):
+                runs = [(c.name, c.perturbation, perturbation_seed(f"{rig}/{i}", c.perturbation or "", 0)) for c in conds]
+                tasks.append(Task(rig, str(path), i, f"synth_{scene_seed(dataset_seed, i)}", runs, methods))
+        else:
+            cams = REAL_RIGS[rig][1]
+            for k in range(real_repeats):  # clean and deterministic rows once, random perturbations per seed
+                runs = [(c.name, c.perturbation, perturbation_seed(rig, c.perturbation or "", k))
+                        for c in conds if k == 0 or (c.perturbation is not None and c.perturbation not in DETERMINISTIC)]
+                if runs:
+                    tasks.append(Task(rig, str(real_dir), k, f"ue_set{REAL_SET}", runs, methods, cameras=cams))
+    for t in tasks:
+        t.done = frozenset((name, m) for name, pert, seed in t.conditions for m in methods
+                           if (name, t.scene_name, seed if pert else None, m) in kept)
+    return [t for t in tasks if len(t.done) < len(t.conditions) * len(methods)]
+
+
+def evaluate(tasks: list[Task], workers: int, model_path: str | None, threads: int,
+             on_done: Callable[[Task], None]) -> None:
+    """Run the tasks (in a spawned process pool when ``workers`` > 1), largest first."""
+    tasks = sorted(tasks, key=lambda t: -len(t.conditions) * (len(t.cameras) if t.cameras else 4))
+    if workers <= 1:
+        _init_worker(model_path, threads)
+        for t in tasks:
+            on_done(run_task(t))
+        return
+    with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(model_path, threads)) as pool:
+        for t in pool.imap_unordered(run_task, tasks):
+            on_done(t)
+
+
+# ---------------------------------------------------------------- table
+METRICS: tuple[tuple[str, str, str], ...] = (
+    # key, title, number format
+    ("average_purity", "average purity (%)", "{:.2f}"),
+    ("rock_purity", "rock purity (%)", "{:.2f}"),
+    ("cluster_purity", "cluster purity (%)", "{:.2f}"),
+    ("voxel_ari", "voxel ARI (where defined)", "{:.4f}"),
+    ("perfect_one_to_one_share", "perfect one-to-one rocks (%)", "{:.1f}"),
+    ("cpu_ms", "CPU time per scene (ms, one thread: the wall time on an idle core)", "{:.0f}"),
+)
+
+
+#: What summary.json keeps per cell: the table's metrics and the wall times.
+SUMMARY_KEYS = frozenset({m[0] for m in METRICS} | {"time_ms", "wall_ms"})
+
+
+def summarize_cells(records: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, Any]]]:
+    """``{condition: {method: {metric: {mean, std, n}, "errors": k, "flag_precision", "flag_recall"}}}``."""
+    from shadowcorr.metrics import summarize
+
+    cells: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    for r in records:
+        cells.setdefault(r["condition"], {}).setdefault(r["method"], []).append(r)
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for cond, per_method in cells.items():
+        for method, recs in per_method.items():
+            ok = [r for r in recs if "error" not in r]
+            stats: dict[str, Any] = {k: v for k, v in summarize(ok).items() if k in SUMMARY_KEYS}
+            flagged = sum(r["flagged_segments"] for r in ok)
+            wrong = sum(r["wrong_segments"] for r in ok)
+            hit = sum(r["flagged_wrong"] for r in ok)
+            stats["flag_precision"] = 100.0 * hit / flagged if flagged else math.nan
+            stats["flag_recall"] = 100.0 * hit / wrong if wrong else math.nan
+            stats["errors"] = len(recs) - len(ok)
+            stats["runs"] = len(recs)
+            out.setdefault(cond, {})[method] = stats
+    return out
+
+
+def format_cell(stats: dict[str, Any] | None, key: str, fmt: str) -> str:
+    """``mean ± std`` of one metric of one cell ("–" when undefined; "(n=k)" when fewer scenes had it)."""
+    if not stats or key not in stats or stats[key]["n"] == 0:
+        return "–"
+    s = stats[key]
+    text = f"{fmt.format(s['mean'])} ± {fmt.format(s['std'])}"
+    if s["n"] < stats["runs"] - stats["errors"]:
+        text += f" (n={s['n']})"
+    if stats["errors"]:
+        text += f" [{stats['errors']} failed]"
+    return text
+
+
+def render_tables(summary: dict[str, dict[str, dict[str, Any]]], conditions: list[Condition],
+                  methods: list[str]) -> str:
+    """Markdown: one table per metric, rows = conditions, columns = methods, plus the support-flag table."""
+    rows = [c for c in conditions if c.name in summary]
+    lines: list[str] = []
+    for key, title, fmt in METRICS:
+        lines += [f"### {title}", "", "| condition | scenes | " + " | ".join(methods) + " |",
+                  "|---|---|" + "---|" * len(methods)]
+        for c in rows:
+            cells = summary[c.name]
+            n = max((cells[m]["runs"] for m in methods if m in cells), default=0)
+            lines.append(f"| {c.name} | {n} | " + " | ".join(format_cell(cells.get(m), key, fmt) for m in methods) + " |")
+        lines.append("")
+    lines += [f"### support < {SUPPORT_FLAG} as a flag for wrong segments: precision / recall (%)", "",
+              "| condition | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for c in rows:
+        cells = summary[c.name]
+        flag = [f"{cells[m]['flag_precision']:.0f} / {cells[m]['flag_recall']:.0f}" if m in cells else "–" for m in methods]
+        lines.append(f"| {c.name} | " + " | ".join(flag).replace("nan", "–") + " |")
+    lines += ["", "Conditions:", ""] + [f"- `{c.name}`: {c.description}" for c in rows]
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------- main
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="3 scenes per cell, a subset of conditions (minutes)")
+    p.add_argument("--scenes", type=int, default=None, help="synthetic scenes per cell (default 30, quick 3)")
+    p.add_argument("--real-repeats", type=int, default=None,
+                   help="perturbation seeds of the real scene's noisy rows (default 5, quick 2)")
+    p.add_argument("--methods", default=",".join(DEFAULT_METHODS), help="comma-separated method names")
+    p.add_argument("--conditions", default=None, help="comma-separated globs over condition names, e.g. 'syn:*,real:0246'")
+    p.add_argument("--noise-rigs", default=",".join(NOISE_RIGS), help="rigs the perturbations are applied to")
+    p.add_argument("--workers", type=int, default=2, help="evaluation (and generation) processes")
+    p.add_argument("--threads", type=int, default=1, help="torch threads per worker")
+    p.add_argument("--cache", default=str(REPO / "out" / "bench_quality_cache"), help="generated scene cache")
+    p.add_argument("--out", default=str(REPO / "out" / "bench_quality"), help="records.jsonl, summary.json, table.md")
+    p.add_argument("--real", default=str(SAMPLE), help="folder of the real sample scene (Unreal layout, set 2001)")
+    p.add_argument("--model", default=None, help="model file (default: the packaged model)")
+    p.add_argument("--seed", type=int, default=SYNTH_SEED, help="generator dataset seed (default 9001)")
+    p.add_argument("--synth", default="{}", help="JSON of SynthConfig fields applied to every synthetic rig "
+                   "before the rig's own (e.g. '{\"renderer\": \"raster\"}')")
+    p.add_argument("--generate-only", action="store_true", help="fill the scene cache, evaluate nothing")
+    p.add_argument("--resume", action="store_true", help="keep the runs already in OUT/records.jsonl (same "
+                   "condition, scene, perturbation seed and method; failed ones are run again) and run the rest")
+    p.add_argument("--list", action="store_true", help="print the conditions and exit")
+    return p.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse_args(argv)
+    n_scenes = args.scenes if args.scenes is not None else (3 if args.quick else 30)
+    repeats = args.real_repeats if args.real_repeats is not None else (2 if args.quick else 5)
+    noise_rigs = [r.strip() for r in args.noise_rigs.split(",") if r.strip()]
+    conditions = select(all_conditions(args.quick, noise_rigs), args.conditions)
+    if args.list:
+        for c in conditions:
+            print(f"{c.name:<28} {c.description}")
+        return 0
+    if not conditions:
+        print("no condition matches --conditions", file=sys.stderr)
+        return 2
+    t_start = time.perf_counter()
+    overrides = json.loads(args.synth)
+    scenes = {
+        rig: ensure_scenes(Path(args.cache), rig, synth_config(rig, overrides), n_scenes, args.seed, args.workers)
+        for rig in dict.fromkeys(c.rig for c in conditions) if rig in SYNTH_RIGS
+    }
+    t_generated = time.perf_counter()
+    if args.generate_only:
+        print(f"scene cache ready in {t_generated - t_start:.0f} s")
+        return 0
+
+    methods = accepted_methods([m.strip() for m in args.methods.split(",") if m.strip()])
+    if not methods:
+        print("no usable method", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    records_path = out / "records.jsonl"
+    wanted = {c.name for c in conditions}
+    old = [json.loads(line) for line in records_path.read_text().splitlines()] if args.resume and records_path.exists() else []
+    records = [r for r in old if "error" not in r and r["condition"] in wanted and r["method"] in methods]
+    tasks = build_tasks(conditions, methods, scenes, Path(args.real), repeats, args.seed, map(run_key, records))
+    todo = sum(len(t.conditions) * len(methods) - len(t.done) for t in tasks)
+    print(f"{len(conditions)} conditions x {len(methods)} methods: {todo} runs in {len(tasks)} tasks"
+          f"{f' ({len(records)} kept from {records_path})' if records else ''}, {args.workers} worker(s)", flush=True)
+    with open(records_path, "w") as f:  # kept runs now, each task's runs as it finishes (an interrupted run resumes)
+        f.writelines(json.dumps(r) + "\n" for r in records)
+
+    def done(task: Task) -> None:
+        records.extend(task.records)
+        with open(records_path, "a") as f:
+            f.writelines(json.dumps(r) + "\n" for r in task.records)
+        print(f"  [{len(records)}] {task.rig} scene {task.scene_index} ({time.perf_counter() - t_generated:.0f} s)",
+              flush=True)
+
+    evaluate(tasks, args.workers, args.model, args.threads, done)
+    t_end = time.perf_counter()
+
+    order = {c.name: i for i, c in enumerate(conditions)}
+    records.sort(key=lambda r: (order[r["condition"]], r["scene"], r["perturbation_seed"] or 0, methods.index(r["method"])))
+    with open(records_path, "w") as f:
+        f.writelines(json.dumps(r) + "\n" for r in records)
+    summary = summarize_cells(records)
+    command = "python benchmarks/bench_quality.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cpu = sum(r.get("cpu_ms", 0.0) for r in records) / 1e3
+    seconds = {"generation": round(t_generated - t_start, 1), "evaluation": round(t_end - t_generated, 1),
+               "cpu_in_method_calls": round(cpu, 1)}
+    (out / "summary.json").write_text(json.dumps(
+        {"command": command, "methods": methods, "conditions": [c.name for c in conditions], "synth_seed": args.seed,
+         "scenes_per_cell": n_scenes, "real_repeats": repeats, "seconds": seconds, "cells": summary},
+        indent=1, allow_nan=True))
+    table = render_tables(summary, conditions, methods)
+    header = (f"Quality benchmark: `{command.strip()}`  \n{n_scenes} synthetic scenes per cell (generator seed "
+              f"{args.seed}), the real scene's random perturbations over {repeats} seeds; mean ± std.  \n"
+              f"Evaluation {t_end - t_generated:.0f} s wall with {args.workers} worker(s) "
+              f"({cpu:.0f} CPU s in the method calls of all {len(records)} runs: {cpu / args.workers:.0f} s "
+              f"on {args.workers} idle cores), generation {t_generated - t_start:.0f} s\n\n")
+    (out / "table.md").write_text(header + table)
+    print()
+    print(header + table)
+    print(f"wrote {out / 'records.jsonl'}, {out / 'summary.json'}, {out / 'table.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,123 @@
+"""The quality benchmark's harness on a tiny configuration: small synthetic scenes (numpy
+rasteriser, 192x108 px), two methods, a perturbed row, the real scene's noisy row; the
+table and summary it writes must agree with its per-run records."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import os
+import re
+import sys
+
+import numpy as np
+import pytest
+
+from shadowcorr.synth.physics import headless_gl_platform
+from tests.paths import REPO
+
+if not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", headless_gl_platform())
+pytest.importorskip("mujoco")
+
+TINY = {  # 4-5 rocks of 60-140 cm seen from 400 cm at 192x108 px: each rock a few hundred pixels
+    "n_rocks": [4, 5], "rock_diameter": [60.0, 140.0], "rock_subdivisions": 3, "field_radius": 100.0,
+    "terrain_half_size": 1000.0, "terrain_resolution": 64, "radius": 400.0, "camera_height": 175.0,
+    "width": 192, "height": 108, "focal_px": 1615.0 / 10, "renderer": "raster", "background_depth": "invalid",
+    "settle_max_time": 3.0,
+}
+CONDITIONS = "syn:4v,syn:4v+split20%,syn:2v-opposite,real:04+drop10%"
+
+
+def _load_bench():
+    spec = importlib.util.spec_from_file_location("bench_quality", REPO / "benchmarks" / "bench_quality.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve their annotations through it
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    bench = _load_bench()
+    tmp = tmp_path_factory.mktemp("bench_quality")
+    argv = ["--scenes", "2", "--real-repeats", "2", "--workers", "1", "--methods", "shadowcorr,meanshift,no_such_method",
+            "--conditions", CONDITIONS, "--noise-rigs", "syn:4v,real:04", "--synth", json.dumps(TINY),
+            "--cache", str(tmp / "cache"), "--out", str(tmp / "out")]
+    return bench, argv, tmp
+
+
+def test_tables_agree_with_records(run, capsys):
+    bench, argv, tmp = run
+    assert bench.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "skipping method 'no_such_method'" in printed
+
+    records = [json.loads(line) for line in (tmp / "out" / "records.jsonl").read_text().splitlines()]
+    summary = json.loads((tmp / "out" / "summary.json").read_text())
+    table = (tmp / "out" / "table.md").read_text()
+    assert table in printed, "the printed table is the written one"
+    methods = ["shadowcorr", "meanshift"]
+    assert summary["methods"] == methods
+
+    # 3 synthetic rows x 2 scenes + the real noisy row x 2 seeds, each by 2 methods
+    runs = {(r["condition"], r["scene"], r["method"]) for r in records}
+    assert len(records) == len(runs) == (3 * 2 + 2) * 2
+    assert not [r for r in records if "error" in r]
+    real = [r for r in records if r["rig"] == "real:04"]
+    assert len({r["perturbation_seed"] for r in real}) == 2, "each repeat of the real scene has its own seed"
+    split = [r for r in records if r["condition"] == "syn:4v+split20%"]
+    clean = {(r["scene"], r["method"]): r for r in records if r["condition"] == "syn:4v"}
+    for r in split:  # a split adds masks, so segments
+        assert r["num_segments"] > clean[(r["scene"], r["method"])]["num_segments"]
+
+    for r in records:
+        assert 0 <= r["average_purity"] <= 100 and r["time_ms"] > 0 and r["cpu_ms"] > 0
+        assert r["average_purity"] == pytest.approx((r["rock_purity"] + r["cluster_purity"]) / 2)
+
+    avg_table = table.split("### average purity")[1].split("###")[0]
+    for cond in summary["conditions"]:
+        row = re.search(rf"^\| {re.escape(cond)} \| (\d+) \| (.*) \|$", avg_table, re.M)
+        assert row, cond
+        cells = [c.strip() for c in row.group(2).split("|")]
+        for method, cell in zip(methods, cells):
+            values = [r[k] for r in records for k in ["average_purity"]
+                      if r["condition"] == cond and r["method"] == method]
+            assert int(row.group(1)) == len(values)
+            mean, std = float(np.mean(values)), float(np.std(values))
+            assert cell == f"{mean:.2f} ± {std:.2f}"
+            stats = summary["cells"][cond][method]
+            assert stats["average_purity"]["mean"] == pytest.approx(mean)
+            assert stats["average_purity"]["std"] == pytest.approx(std)
+            for key in ("time_ms", "cpu_ms"):
+                times = [r[key] for r in records if r["condition"] == cond and r["method"] == method]
+                assert stats[key]["mean"] == pytest.approx(np.mean(times))
+            flagged = sum(r["flagged_segments"] for r in records if r["condition"] == cond and r["method"] == method)
+            hit = sum(r["flagged_wrong"] for r in records if r["condition"] == cond and r["method"] == method)
+            expected = 100.0 * hit / flagged if flagged else math.nan
+            assert stats["flag_precision"] == pytest.approx(expected, nan_ok=True)
+
+
+def test_rerun_reuses_cache_and_records(run, capsys):
+    bench, argv, tmp = run
+    assert bench.main([*argv, "--generate-only"]) == 0
+    assert "generating" not in capsys.readouterr().out
+    before = (tmp / "out" / "records.jsonl").read_text()
+    # --resume with every run already recorded: nothing runs, the same records and table come out
+    assert bench.main([*argv, "--resume"]) == 0
+    printed = capsys.readouterr().out
+    assert "0 runs in 0 tasks (16 kept" in printed
+    assert (tmp / "out" / "records.jsonl").read_text() == before
+
+
+def test_wrong_segments_and_conditions():
+    bench = _load_bench()
+    truth = np.array([1, 1, 1, 2, 2, 2, 3, -1])
+    pred = np.array([0, 0, 5, 0, 1, 1, 2, 0])  # rock 1 split (seg 2), rock 2's seg 3 merged into rock 1's object
+    assert bench.wrong_segments(truth, pred).tolist() == [False, False, True, True, False, False, False, False]
+    assert bench.wrong_segments(np.array([4, 4, 4]), np.array([-1, 3, 3])).tolist() == [True, False, False]
+    names = [c.name for c in bench.all_conditions(quick=False)]
+    assert len(names) == len(set(names))
+    assert {"syn:4v", "syn:8v", "real:all8", "syn:4v+depth2%", "real:0246+merge10%"} <= set(names)
+    assert [c.name for c in bench.select(bench.all_conditions(quick=True), "real:0*")][:2] == ["real:0246", "real:012"]
