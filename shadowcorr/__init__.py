@@ -3,6 +3,11 @@
 The library is a pipeline of stages with plain data between them::
 
     SceneBundle --prepare--> VoxelScene --embed--> embeddings --assign--> Result
+                 segments, surface evidence,       (network)     evidence graph -> groups -> labels
+                 shadows -> consensus voxels
+
+The default method ``fused`` reads both the cross-view surface evidence and the network's
+volumetric evidence; ``ShadowCorrConfig.method`` selects another.
 
 ``correspond(bundle)`` runs them all.  See ``docs/CONTRACTS.md`` and the README.
 
