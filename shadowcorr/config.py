@@ -90,6 +90,8 @@ class ShadowCorrConfig(BaseModel):
 
     # resolving the evidence (method 'fused', see shadowcorr.grouping)
     fusion_surface_prior: float = Field(20.0, gt=0, description="landing points that make surface evidence half-sure")
+    fusion_neutral_share: float = Field(0.2, gt=0, lt=1, description="share of a group's landings on another "
+                                        "group that is neither for nor against joining them")
     fusion_surface_symmetry: float = Field(0.25, ge=0, le=1, description="weight of the weaker direction of the "
                                            "surface evidence (0: the stronger direction alone)")
     fusion_volume_weight: float = Field(1.0, ge=0, description="weight of the network's volumetric evidence")
@@ -97,7 +99,8 @@ class ShadowCorrConfig(BaseModel):
     fusion_volume_distance: float = Field(1.0, gt=0, description="embedding distance at which volumetric evidence is neutral")
     fusion_volume_scale: float = Field(0.5, gt=0, description="embedding distance over which the evidence saturates")
     fusion_volume_voxels: float = Field(10.0, gt=0, description="shared voxels that give a segment pair full mass")
-    fusion_cannot_link: float = Field(1.0, ge=0, description="penalty per pair of different mask ids of one view")
+    fusion_cannot_link: float = Field(0.6, ge=0, description="penalty times the share of the views seeing both "
+                                      "groups in which they wear different mask ids")
     fusion_same_mask: float = Field(0.5, ge=0, description="bonus per pair of blobs of one mask id in one view")
     fusion_threshold: float = Field(0.0, description="groups merge while their linkage exceeds this")
     fusion_confidence_slope: float = Field(4.0, gt=0, description="slope of the logistic turning a segment's "

@@ -13,18 +13,21 @@ Two ways to resolve the evidence, one per method:
   group; the two groups with the highest linkage merge, as long as it is above
   ``fusion_threshold``.  The linkage of groups X and Y adds up
 
-  - surface evidence, the stronger of the two directions: of all points of X that are
-    visible in Y's views and land on some segment there, the share ``f`` that lands on Y, as
-    ``(2 f - 1) n / (n + fusion_surface_prior)`` with ``n`` the number of such points (and
-    likewise from Y to X) - the smaller of two pieces of one surface lands inside the larger
-    one, while the larger only partly covers the smaller;
+  - surface evidence, mostly the stronger of the two directions (the weaker weighs
+    ``fusion_surface_symmetry``): of all points of X that are visible in Y's views and land on
+    some segment there, the share ``f`` that lands on Y, read against
+    ``fusion_neutral_share`` (two parts of one object land on each other in any proportion,
+    two different objects hardly at all) and shrunk by ``n / (n + fusion_surface_prior)`` with
+    ``n`` the number of such points (likewise from Y to X) - the smaller of two pieces of one
+    surface lands inside the larger one, while the larger only partly covers the smaller;
   - volumetric evidence: the similarity of the network's embeddings of segments whose
     shadows share voxels, pooled as ``sum(value * mass) / (sum(mass) +
     fusion_volume_prior)``, times ``fusion_volume_weight``;
-  - constraints of the views: each pair of segments that are different mask ids of one view
-    subtracts ``fusion_cannot_link``, each pair that are blobs of one mask id adds
-    ``fusion_same_mask``, both as a share of all segment pairs between X and Y - a
-    constraint, not a rule: strong evidence from other views can still join a split mask.
+  - constraints of the views: ``fusion_cannot_link`` times the share of the views seeing both
+    X and Y in which they wear different mask ids is subtracted (a segmenter rarely cuts one
+    rock in two), and ``fusion_same_mask`` times the share of segment pairs that are blobs
+    of one mask id is added - a constraint, not a rule: strong evidence from the other views
+    can still join a split mask.
 
 Each segment's ``confidence`` compares how strongly it is linked to its own group with the
 strongest alternative (another group, or standing alone); see :func:`segment_confidence`.
@@ -75,30 +78,41 @@ def link_components(surface: SurfaceEvidence, segment_view: np.ndarray, config: 
     return labels.astype(np.int64)
 
 
-def linkage(hits_xy, trials_xy, hits_yx, trials_yx, volume, mass, same, conflict, pairs, config: ShadowCorrConfig):
+def linkage(hits_xy, trials_xy, hits_yx, trials_yx, volume, mass, same, pairs, conflict, config: ShadowCorrConfig):
     """The linkage of groups X and Y from their pooled counts (scalars or arrays; see the module docstring).
 
     ``hits_xy``: points of X landing on Y; ``trials_xy``: points of X visible in Y's views and
     landing on some segment there (likewise from Y to X); ``volume`` and ``mass``: summed
-    volumetric value * mass and mass; ``same`` / ``conflict``: segment pairs that are blobs of
-    one mask id / different mask ids of one view; ``pairs``: all segment pairs between them.
+    volumetric value * mass and mass; ``same``: segment pairs that are blobs of one mask id;
+    ``pairs``: all segment pairs between X and Y; ``conflict``: the share of the views that
+    see both X and Y in which they wear different mask ids.
     """
-    # Plain arithmetic, so that one formula serves the scalar loop and the vectorised confidence.
     forward, backward = _directed_surface(hits_xy, trials_xy, config), _directed_surface(hits_yx, trials_yx, config)
     if isinstance(forward, np.ndarray):
         stronger, weaker = np.maximum(forward, backward), np.minimum(forward, backward)
     else:
         stronger, weaker = max(forward, backward), min(forward, backward)
+    # Plain arithmetic, so that one formula serves the scalar loop and the vectorised confidence.
     surface = stronger + config.fusion_surface_symmetry * (weaker - stronger)
     volumetric = config.fusion_volume_weight * volume / (mass + config.fusion_volume_prior)
-    constraints = (config.fusion_same_mask * same - config.fusion_cannot_link * conflict) / pairs
+    constraints = config.fusion_same_mask * same / pairs - config.fusion_cannot_link * conflict
     return surface + volumetric + constraints
 
 
 def _directed_surface(hits, trials, config: ShadowCorrConfig):
-    """Surface evidence of one direction: (2 share - 1), shrunk towards 0 when few points were seen
-    (exactly 0 when none was: the shrink factor is 0 there)."""
-    return (2.0 * hits / (trials + 1e-12) - 1.0) * trials / (trials + config.fusion_surface_prior)
+    """Surface evidence of one direction, in [-1, 1].
+
+    The share ``f`` of landings on the other group is read against ``fusion_neutral_share``:
+    two parts of one object land on each other in any proportion, two different objects
+    hardly at all, so ``f`` rises from -1 at 0 through 0 at the neutral share to +1 at 1
+    (piecewise linear).  It is shrunk towards 0 when few points were seen - exactly 0 when
+    none was (the shrink factor is 0 there).
+    """
+    f0 = config.fusion_neutral_share
+    share = hits / (trials + 1e-12)
+    # The two lines meet at f0; below it the steeper one is the smaller.
+    value = np.minimum(share / f0 - 1.0, (share - f0) / (1.0 - f0))
+    return value * trials / (trials + config.fusion_surface_prior)
 
 
 class _Groups:
@@ -112,6 +126,7 @@ class _Groups:
         self.trials: list[list[float]] = graph.surface.on_mask.astype(np.float64).tolist()
         self.views = [{int(v): 1} for v in graph.view]
         self.masks = [{(int(v), int(i)): 1} for v, i in zip(graph.view, graph.instance)]
+        self.view_ids = [{int(v): {int(i)}} for v, i in zip(graph.view, graph.instance)]  # view -> mask ids
         self.version = np.zeros(s, dtype=np.int64)
         self.parent = np.arange(s)
         # edges[g][h] = [hits g->h, hits h->g, sum of volume value * mass, sum of volume mass]
@@ -140,22 +155,25 @@ class _Groups:
             e = self.edges[g][h] = [0.0, 0.0, 0.0, 0.0]
         return e
 
-    def constraint_pairs(self, g: int, h: int) -> tuple[int, int]:
-        """(pairs of blobs of one mask id, pairs of different mask ids of one view) between g and h."""
+    def constraints(self, g: int, h: int) -> tuple[int, float]:
+        """(pairs of blobs of one mask id, share of the views seeing both in which their mask ids differ)."""
         small, large = (g, h) if len(self.masks[g]) <= len(self.masks[h]) else (h, g)
         same = sum(n * self.masks[large].get(k, 0) for k, n in self.masks[small].items())
-        small, large = (g, h) if len(self.views[g]) <= len(self.views[h]) else (h, g)
-        shared_view = sum(n * self.views[large].get(v, 0) for v, n in self.views[small].items())
-        return same, shared_view - same
+        ids_g, ids_h = self.view_ids[g], self.view_ids[h]
+        shared = [v for v in ids_g if v in ids_h]
+        if not shared:
+            return same, 0.0
+        differ = sum(1 for v in shared if len(ids_g[v] | ids_h[v]) > 1)
+        return same, differ / len(shared)
 
     def linkage(self, g: int, h: int) -> float:
         hits_gh, hits_hg, volume, mass = self.edges[g][h]
         trials_g, trials_h = self.trials[g], self.trials[h]
         trials_gh = sum(trials_g[v] for v in self.views[h])
         trials_hg = sum(trials_h[v] for v in self.views[g])
-        same, conflict = self.constraint_pairs(g, h)
-        return float(linkage(hits_gh, trials_gh, hits_hg, trials_hg, volume, mass, same, conflict,
-                             float(self.size[g] * self.size[h]), self.config))
+        same, conflict = self.constraints(g, h)
+        return float(linkage(hits_gh, trials_gh, hits_hg, trials_hg, volume, mass, same,
+                             float(self.size[g] * self.size[h]), conflict, self.config))
 
     def merge(self, g: int, h: int) -> int:
         """Fold the smaller group into the larger; returns the surviving group."""
@@ -167,6 +185,8 @@ class _Groups:
         for table_g, table_h in ((self.views[g], self.views[h]), (self.masks[g], self.masks[h])):
             for k, n in table_h.items():
                 table_g[k] = table_g.get(k, 0) + n
+        for v, ids in self.view_ids[h].items():
+            self.view_ids[g].setdefault(v, set()).update(ids)
         for other, (ho, oh, volume, mass) in self.edges[h].items():
             del self.edges[other][h]
             if other == g:
@@ -258,10 +278,11 @@ def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCo
     lookup = grp * (int(mask_key.max()) + 1) + mask_key[seg]
     at = np.minimum(np.searchsorted(m_keys, lookup), m_keys.size - 1)
     same = np.where(m_keys[at] == lookup, m_count[at], 0) - own
-    conflict = per_view[grp, graph.view[seg]] - own - same
+    # A lone segment shares at most its own view with a group: a conflict there is all or nothing.
+    conflict = (per_view[grp, graph.view[seg]] - own - same > 0).astype(np.float64)
     pairs = np.bincount(group, minlength=k)[grp] - own
-    value = np.where(pairs > 0, linkage(hits_out, trials_out, hits_in, trials_in, volume, mass, same, conflict,
-                                        np.maximum(pairs, 1), config), 0.0)
+    value = np.where(pairs > 0, linkage(hits_out, trials_out, hits_in, trials_in, volume, mass, same,
+                                        np.maximum(pairs, 1), conflict, config), 0.0)
 
     own_link = np.zeros(s)
     own_link[seg[own]] = value[own]
