@@ -33,6 +33,10 @@ class ShadowCorrConfig(BaseModel):
     min_blob_pixels: int = Field(50, ge=0, description="blobs with fewer pixels are ignored")
     max_depth: float = Field(2000.0, gt=0, description="depth beyond this is invalid (units)")
 
+    subsample_pixels: bool = Field(True, description="back-project only every k-th pixel per axis, k as many "
+                                   "pixels as fit in half a downsample cell at the view's median depth "
+                                   "(num_points then counts the back-projected points)")
+
     # step 1: per-segment clean-up
     downsample_size: float = Field(2.0, gt=0, description="voxel-grid downsampling cell (units)")
     outlier_min_points: int = Field(20, ge=2, description="statistical outlier removal above this many points")
@@ -99,9 +103,10 @@ class ShadowCorrConfig(BaseModel):
     fusion_volume_distance: float = Field(1.0, gt=0, description="embedding distance at which volumetric evidence is neutral")
     fusion_volume_scale: float = Field(0.5, gt=0, description="embedding distance over which the evidence saturates")
     fusion_volume_voxels: float = Field(10.0, gt=0, description="shared voxels that give a segment pair full mass")
-    fusion_cannot_link: float = Field(0.6, ge=0, description="penalty times the share of the views seeing both "
+    fusion_cannot_link: float = Field(0.8, ge=0, description="penalty times the share of the views seeing both "
                                       "groups in which they wear different mask ids")
-    fusion_same_mask: float = Field(0.5, ge=0, description="bonus per pair of blobs of one mask id in one view")
+    fusion_same_mask: float = Field(0.5, ge=0, description="bonus times the share of the views seeing both groups "
+                                    "in which they wear one mask id (blobs of one mask)")
     fusion_threshold: float = Field(0.0, description="groups merge while their linkage exceeds this")
     fusion_confidence_slope: float = Field(4.0, gt=0, description="slope of the logistic turning a segment's "
                                            "linkage margin into its confidence")

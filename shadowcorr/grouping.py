@@ -23,11 +23,12 @@ Two ways to resolve the evidence, one per method:
   - volumetric evidence: the similarity of the network's embeddings of segments whose
     shadows share voxels, pooled as ``sum(value * mass) / (sum(mass) +
     fusion_volume_prior)``, times ``fusion_volume_weight``;
-  - constraints of the views: ``fusion_cannot_link`` times the share of the views seeing both
-    X and Y in which they wear different mask ids is subtracted (a segmenter rarely cuts one
-    rock in two), and ``fusion_same_mask`` times the share of segment pairs that are blobs
-    of one mask id is added - a constraint, not a rule: strong evidence from the other views
-    can still join a split mask.
+  - constraints of the views: of the views that see both X and Y, the share in which they
+    wear different mask ids, times ``fusion_cannot_link``, is subtracted (a segmenter rarely
+    cuts one rock in two), and the share in which they wear one mask id (blobs of one mask),
+    times ``fusion_same_mask``, is added - constraints, not rules: strong evidence from the
+    other views can still join a split mask, and a tiny blob nothing else sees joins the
+    other blobs of its mask.
 
 Each segment's ``confidence`` compares how strongly it is linked to its own group with the
 strongest alternative (another group, or standing alone); see :func:`segment_confidence`.
@@ -78,14 +79,13 @@ def link_components(surface: SurfaceEvidence, segment_view: np.ndarray, config: 
     return labels.astype(np.int64)
 
 
-def linkage(hits_xy, trials_xy, hits_yx, trials_yx, volume, mass, same, pairs, conflict, config: ShadowCorrConfig):
+def linkage(hits_xy, trials_xy, hits_yx, trials_yx, volume, mass, agree, differ, config: ShadowCorrConfig):
     """The linkage of groups X and Y from their pooled counts (scalars or arrays; see the module docstring).
 
     ``hits_xy``: points of X landing on Y; ``trials_xy``: points of X visible in Y's views and
     landing on some segment there (likewise from Y to X); ``volume`` and ``mass``: summed
-    volumetric value * mass and mass; ``same``: segment pairs that are blobs of one mask id;
-    ``pairs``: all segment pairs between X and Y; ``conflict``: the share of the views that
-    see both X and Y in which they wear different mask ids.
+    volumetric value * mass and mass; ``agree`` / ``differ``: the share of the views seeing
+    both X and Y in which they wear one mask id / different mask ids.
     """
     forward, backward = _directed_surface(hits_xy, trials_xy, config), _directed_surface(hits_yx, trials_yx, config)
     if isinstance(forward, np.ndarray):
@@ -95,7 +95,7 @@ def linkage(hits_xy, trials_xy, hits_yx, trials_yx, volume, mass, same, pairs, c
     # Plain arithmetic, so that one formula serves the scalar loop and the vectorised confidence.
     surface = stronger + config.fusion_surface_symmetry * (weaker - stronger)
     volumetric = config.fusion_volume_weight * volume / (mass + config.fusion_volume_prior)
-    constraints = config.fusion_same_mask * same / pairs - config.fusion_cannot_link * conflict
+    constraints = config.fusion_same_mask * agree - config.fusion_cannot_link * differ
     return surface + volumetric + constraints
 
 
@@ -125,7 +125,6 @@ class _Groups:
         # trials[g][j]: points of group g visible in view j and landing on some segment there
         self.trials: list[list[float]] = graph.surface.on_mask.astype(np.float64).tolist()
         self.views = [{int(v): 1} for v in graph.view]
-        self.masks = [{(int(v), int(i)): 1} for v, i in zip(graph.view, graph.instance)]
         self.view_ids = [{int(v): {int(i)}} for v, i in zip(graph.view, graph.instance)]  # view -> mask ids
         self.version = np.zeros(s, dtype=np.int64)
         self.parent = np.arange(s)
@@ -155,25 +154,22 @@ class _Groups:
             e = self.edges[g][h] = [0.0, 0.0, 0.0, 0.0]
         return e
 
-    def constraints(self, g: int, h: int) -> tuple[int, float]:
-        """(pairs of blobs of one mask id, share of the views seeing both in which their mask ids differ)."""
-        small, large = (g, h) if len(self.masks[g]) <= len(self.masks[h]) else (h, g)
-        same = sum(n * self.masks[large].get(k, 0) for k, n in self.masks[small].items())
+    def constraints(self, g: int, h: int) -> tuple[float, float]:
+        """Shares of the views seeing both g and h in which they wear one mask id / different ones."""
         ids_g, ids_h = self.view_ids[g], self.view_ids[h]
-        shared = [v for v in ids_g if v in ids_h]
+        shared = [v for v in ids_g if v in ids_h] if len(ids_g) <= len(ids_h) else [v for v in ids_h if v in ids_g]
         if not shared:
-            return same, 0.0
+            return 0.0, 0.0
         differ = sum(1 for v in shared if len(ids_g[v] | ids_h[v]) > 1)
-        return same, differ / len(shared)
+        return (len(shared) - differ) / len(shared), differ / len(shared)
 
     def linkage(self, g: int, h: int) -> float:
         hits_gh, hits_hg, volume, mass = self.edges[g][h]
         trials_g, trials_h = self.trials[g], self.trials[h]
         trials_gh = sum(trials_g[v] for v in self.views[h])
         trials_hg = sum(trials_h[v] for v in self.views[g])
-        same, conflict = self.constraints(g, h)
-        return float(linkage(hits_gh, trials_gh, hits_hg, trials_hg, volume, mass, same,
-                             float(self.size[g] * self.size[h]), conflict, self.config))
+        agree, differ = self.constraints(g, h)
+        return float(linkage(hits_gh, trials_gh, hits_hg, trials_hg, volume, mass, agree, differ, self.config))
 
     def merge(self, g: int, h: int) -> int:
         """Fold the smaller group into the larger; returns the surviving group."""
@@ -182,9 +178,8 @@ class _Groups:
         self.parent[h] = g
         self.size[g] += self.size[h]
         self.trials[g] = [a + b for a, b in zip(self.trials[g], self.trials[h])]
-        for table_g, table_h in ((self.views[g], self.views[h]), (self.masks[g], self.masks[h])):
-            for k, n in table_h.items():
-                table_g[k] = table_g.get(k, 0) + n
+        for v, n in self.views[h].items():
+            self.views[g][v] = self.views[g].get(v, 0) + n
         for v, ids in self.view_ids[h].items():
             self.view_ids[g].setdefault(v, set()).update(ids)
         for other, (ho, oh, volume, mass) in self.edges[h].items():
@@ -278,11 +273,12 @@ def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCo
     lookup = grp * (int(mask_key.max()) + 1) + mask_key[seg]
     at = np.minimum(np.searchsorted(m_keys, lookup), m_keys.size - 1)
     same = np.where(m_keys[at] == lookup, m_count[at], 0) - own
-    # A lone segment shares at most its own view with a group: a conflict there is all or nothing.
-    conflict = (per_view[grp, graph.view[seg]] - own - same > 0).astype(np.float64)
+    # A lone segment shares at most its own view with a group: the ids agree there or not.
+    differ = (per_view[grp, graph.view[seg]] - own - same > 0).astype(np.float64)
+    agree = ((same > 0) & (differ == 0)).astype(np.float64)
     pairs = np.bincount(group, minlength=k)[grp] - own
-    value = np.where(pairs > 0, linkage(hits_out, trials_out, hits_in, trials_in, volume, mass, same,
-                                        np.maximum(pairs, 1), conflict, config), 0.0)
+    value = np.where(pairs > 0, linkage(hits_out, trials_out, hits_in, trials_in, volume, mass, agree, differ,
+                                        config), 0.0)
 
     own_link = np.zeros(s)
     own_link[seg[own]] = value[own]

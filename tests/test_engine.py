@@ -57,13 +57,25 @@ def test_segments_split_components_and_ignore_small_blobs():
     depth[60:70, 60:80] = 0  # half of instance 5 has no valid depth
     pose = np.eye(4)
     bundle = SceneBundle(units="cm", views=[View("v", pose, k, depth, mask)])
-    seg = extract_segments(bundle, ShadowCorrConfig())
+    exact = ShadowCorrConfig(subsample_pixels=False)
+    seg = extract_segments(bundle, exact)
     assert seg.instance.tolist() == [3, 3, 5]
     assert seg.component.tolist() == [0, 1, 0]
     assert seg.num_pixels.tolist() == [1200, 900, 400]
     assert seg.lengths.tolist() == [1200, 900, 200]
-    merged = extract_segments(bundle, ShadowCorrConfig(split_components=False))
+    merged = extract_segments(bundle, exact.with_options(split_components=False))
     assert merged.instance.tolist() == [3, 5] and merged.lengths[0] == 1200 + 900 + 25
+
+
+def test_pixel_subsampling_keeps_the_downsample_cells_of_nearly_every_point():
+    bundle = sphere_scene([[0, 0, 0]], [50], cameras=2, width=1920, height_px=1080)  # 0.5 cm per pixel
+    exact = ShadowCorrConfig(subsample_pixels=False)
+    full, strided = extract_segments(bundle, exact), extract_segments(bundle, ShadowCorrConfig())
+    assert strided.points.shape[0] < full.points.shape[0] / 3  # stride 2 at this range
+    cell = lambda p: [tuple(c) for c in np.floor(p / exact.downsample_size).astype(int).tolist()]  # noqa: E731
+    kept = set(cell(strided.points))
+    # Only cells the surface grazes at the silhouette (a few points each) can go empty.
+    assert np.mean([c in kept for c in cell(full.points)]) > 0.9
 
 
 def test_back_projection_lies_on_the_sphere():
