@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 #: Options a remote caller may change per request without making the model's
 #: inputs inconsistent with its training (used by the HTTP service).
-REQUEST_OPTIONS = ("bandwidth", "split_components", "min_blob_pixels", "min_cluster_size")
+REQUEST_OPTIONS = ("bandwidth", "split_components", "min_blob_pixels", "min_cluster_size", "refine_poses")
 
 
 class ShadowCorrConfig(BaseModel):
@@ -23,6 +23,14 @@ class ShadowCorrConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     units: Literal["m", "cm", "mm"] = "cm"
+
+    # step 0: pose refinement (shadowcorr.pose_refinement)
+    refine_poses: bool = Field(False, description="register the views' full depth to each other and correct their poses first")
+    pose_point_spacing: float = Field(16.0, gt=0, description="registration point cloud: one point per cell of this size (units)")
+    pose_max_rotation_deg: float = Field(5.0, gt=0, le=30, description="larger corrections are refused (the pose is kept)")
+    pose_max_translation: float = Field(50.0, gt=0, description="camera centre moves beyond this are refused (units)")
+    pose_min_overlap: float = Field(0.2, gt=0, le=1, description="view pairs sharing less of their surface are not registered")
+    pose_max_residual: float = Field(5.0, gt=0, description="registrations fitting worse (RMS point-to-plane, units) are not used")
 
     # segments
     split_components: bool = Field(True, description="split disconnected blobs of one mask value into segments")

@@ -16,6 +16,7 @@ from .assignment import assign
 from .bundle import SceneBundle, unit_scale
 from .config import ShadowCorrConfig
 from .nn import Model, load_model, run_batched
+from .pose_refinement import pose_warnings, refine_poses
 from .result import ModelInfo, Result
 from .segments import extract_segments
 from .shadows import cast_shadows, segment_shells
@@ -23,9 +24,14 @@ from .voxel_scene import VoxelScene, build_voxel_scene
 
 
 def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> VoxelScene:
-    """Segments, shadows, consensus voxels and network features of one scene."""
+    """(Pose refinement,) segments, shadows, consensus voxels and network features of one scene."""
     config = config or ShadowCorrConfig()
     timings: dict[str, float] = {}
+    poses = None
+    if config.refine_poses:
+        t0 = time.perf_counter()
+        bundle, poses = refine_poses(bundle, config)
+        timings["poses"] = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
     segments = extract_segments(bundle, config)
     if segments.num_segments == 0:
@@ -43,7 +49,8 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     scene = build_voxel_scene(
         bundle.name, bundle.units, unit_scale(bundle.units, config.units), segments, shells, shadows, config, timings
     )
-    scene.warnings[:0] = list(bundle.warnings)
+    scene.warnings[:0] = list(bundle.warnings) + (pose_warnings(poses) if poses else [])
+    scene.poses = poses
     return scene
 
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import ShadowCorrConfig
+from .result import ViewPoseCorrection
 from .grid_keys import pack_cell_keys, unique_keys
 from .segment_embedding import cooccurrence, train_segment_embeddings, voxel_embeddings
 from .segments import Segments
@@ -60,6 +61,7 @@ class VoxelScene:
     orphan_index: np.ndarray  # (K, 3) int64
     warnings: list[str] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
+    poses: list[ViewPoseCorrection] | None = None  # pose refinement report, when it ran
 
     @property
     def num_segments(self) -> int:
