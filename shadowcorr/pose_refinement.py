@@ -66,9 +66,9 @@ _FINE_MATCH = 1.5
 #: moves less than this share of the spacing; the fine pass at a tenth of both.
 _COARSE_STOP_DEG = 0.05
 _COARSE_STOP_SPACING = 1.0 / 32.0
-#: A pair is degenerate when the weakest direction of the normalised GICP Hessian carries
+#: A pair is degenerate when the weakest direction of its point-to-plane information carries
 #: less than this share of the strongest (a flat or a cylindrical surface).
-_MIN_HESSIAN_RATIO = 1e-3
+_MIN_CONSTRAINT_RATIO = 1e-3
 
 
 @dataclass
@@ -135,10 +135,15 @@ def _make_cloud(points: np.ndarray, config: ShadowCorrConfig, coarse: float) -> 
                   _cell_keys(pts, coarse))
 
 
-def _hessian_ratio(hessian: np.ndarray, radius: float) -> float:
-    """Weakest / strongest eigenvalue of the GICP Hessian with rotations scaled to lengths at ``radius``."""
-    scale = np.r_[np.full(3, radius), np.ones(3)]
-    eig = np.linalg.eigvalsh(hessian / np.outer(scale, scale))
+def _constraint_ratio(points: np.ndarray, normals: np.ndarray, radius: float) -> float:
+    """How well matched surface patches pin all six degrees of freedom: weakest / strongest
+    eigenvalue of the point-to-plane information matrix (rotations as motions at ``radius``).
+
+    A plane leaves three directions free (ratio near 0), a cylinder one; ground with relief
+    and rocks on it pins all of them.
+    """
+    jac = np.concatenate([np.cross(points / radius, normals), normals], axis=1)
+    eig = np.linalg.eigvalsh(jac.T @ jac)
     return float(eig[0] / eig[-1]) if eig[-1] > 0 else 0.0
 
 
@@ -165,10 +170,23 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, radius: 
     residual = float(np.sqrt(np.mean(offset**2)))
     if residual > config.pose_max_residual:
         return None, f"residual {residual:.3g} > {config.pose_max_residual} {config.units}"
-    ratio = _hessian_ratio(np.asarray(result.H), radius)
-    if ratio < _MIN_HESSIAN_RATIO:
-        return None, f"degenerate surface (Hessian ratio {ratio:.1e}: the overlap does not pin every direction)"
+    ratio = _constraint_ratio(target.points[nearest[inlier]], target.normals[nearest[inlier]], radius)
+    if ratio < _MIN_CONSTRAINT_RATIO:
+        return None, f"degenerate surface (constraint ratio {ratio:.1e}: the overlap does not pin every direction)"
     return _Pair(-1, -1, transform, residual, overlap), "ok"
+
+
+def _weighted_incidence(n: int, edges: list[_Pair]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Source and target index, and the (E, n) incidence matrix (+w at source, -w at target) and
+    weights w of the edges: a pair counts more the more surface it shares and the better it fits."""
+    src = np.array([e.source for e in edges])
+    tgt = np.array([e.target for e in edges])
+    weight = np.array([e.overlap / e.residual for e in edges])
+    weight = weight / weight.max()
+    incidence = np.zeros((len(edges), n))
+    incidence[np.arange(len(edges)), src] = weight
+    incidence[np.arange(len(edges)), tgt] = -weight
+    return src, tgt, incidence, weight
 
 
 def _average_rotations(n: int, edges: list[_Pair], iterations: int = 8) -> np.ndarray:
@@ -176,16 +194,12 @@ def _average_rotations(n: int, edges: list[_Pair], iterations: int = 8) -> np.nd
     rotations = np.repeat(np.eye(3)[None], n, axis=0)
     if not edges:
         return rotations
-    src = np.array([e.source for e in edges])
-    tgt = np.array([e.target for e in edges])
-    incidence = np.zeros((len(edges), n))
-    incidence[np.arange(len(edges)), src] = 1.0
-    incidence[np.arange(len(edges)), tgt] = -1.0
+    src, tgt, incidence, weight = _weighted_incidence(n, edges)
     measured = np.stack([e.transform[:3, :3] for e in edges])
     for _ in range(iterations):
         # residual e_ij = log(R_j R_ij R_i^T); left updates with d_i - d_j = e_ij cancel it to first order.
         err = Rotation.from_matrix(rotations[tgt] @ measured @ rotations[src].transpose(0, 2, 1)).as_rotvec()
-        step = np.linalg.lstsq(incidence, err, rcond=None)[0]  # min-norm: zero mean per connected group
+        step = np.linalg.lstsq(incidence, err * weight[:, None], rcond=None)[0]  # min-norm: zero mean per group
         rotations = Rotation.from_rotvec(step).as_matrix() @ rotations
         if np.abs(step).max() < 1e-10:
             break
@@ -197,14 +211,10 @@ def _solve_graph(n: int, edges: list[_Pair]) -> tuple[np.ndarray, np.ndarray]:
     rotations = _average_rotations(n, edges)
     translations = np.zeros((n, 3))
     if edges:
-        src = np.array([e.source for e in edges])
-        tgt = np.array([e.target for e in edges])
-        incidence = np.zeros((len(edges), n))
-        incidence[np.arange(len(edges)), src] = 1.0
-        incidence[np.arange(len(edges)), tgt] = -1.0
+        src, tgt, incidence, weight = _weighted_incidence(n, edges)
         # t_i - t_j = R_j t_ij, exactly linear once the rotations are known.
         rhs = np.einsum("eij,ej->ei", rotations[tgt], np.stack([e.transform[:3, 3] for e in edges]))
-        translations = np.linalg.lstsq(incidence, rhs, rcond=None)[0]
+        translations = np.linalg.lstsq(incidence, rhs * weight[:, None], rcond=None)[0]
     return rotations, translations
 
 
@@ -241,9 +251,10 @@ def refine_poses(
                         for v in bundle.views]
 
     raw = [_view_points(v, config.max_depth / scale) * scale for v in bundle.views]
+    # Median centre and distance: a view declared far away (another place) must not move them.
     all_points = np.concatenate([p for p in raw if p.size] or [np.zeros((1, 3))])
-    centre = all_points.mean(axis=0)
-    radius = max(float(np.sqrt(np.mean(np.sum((all_points - centre) ** 2, axis=1)))), config.pose_point_spacing)
+    centre = np.median(all_points, axis=0)
+    radius = max(float(np.median(np.linalg.norm(all_points - centre, axis=1))), config.pose_point_spacing)
     coarse = _coarse_match_distance(config, radius)
     clouds = [_make_cloud(p - centre, config, coarse) if p.shape[0] else None for p in raw]
 
@@ -332,3 +343,21 @@ def pose_warnings(reports: list[ViewPoseCorrection]) -> list[str]:
         elif r.consistent is False:
             out.append(f"pose of view {r.view}: {r.message}")
     return out
+
+
+def pose_errors(estimated: np.ndarray, truth: np.ndarray, *, common_motion: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Per-view rotation error (degrees) and camera-centre error (pose units) of (V, 4, 4) camera-to-world poses.
+
+    With ``common_motion`` the one rigid motion that best brings all estimated cameras
+    onto the true ones is taken out first: the images cannot reveal a motion shared by
+    every camera, so that is the error refinement can be asked to remove.
+    """
+    rot_e, rot_t = estimated[:, :3, :3], truth[:, :3, :3]
+    centre_e, centre_t = estimated[:, :3, 3], truth[:, :3, 3]
+    if common_motion:
+        common = Rotation.from_matrix(rot_t @ rot_e.transpose(0, 2, 1)).mean().as_matrix()
+        rot_e = common @ rot_e
+        centre_e = centre_e @ common.T
+        centre_e = centre_e + (centre_t - centre_e).mean(axis=0)
+    angles = np.rad2deg(Rotation.from_matrix(rot_e @ rot_t.transpose(0, 2, 1)).magnitude())
+    return angles, np.linalg.norm(centre_e - centre_t, axis=1)
