@@ -52,8 +52,8 @@ from .config import ShadowCorrConfig
 from .result import ViewPoseCorrection
 from .segments import back_project
 
-#: Pixels sampled per view before thinning (a regular grid; about 1 in 50 of a 1080p image).
-_SAMPLED_PIXELS = 40_000
+#: Pixels sampled per view before thinning (a regular grid; about 1 in 100 of a 1080p image).
+_SAMPLED_PIXELS = 20_000
 #: Neighbours for small_gicp's per-point covariance estimate.
 _COVARIANCE_NEIGHBOURS = 10
 #: The coarse pass runs on clouds this many times sparser than the fine one.
