@@ -61,7 +61,7 @@ _COARSE_SPACING = 3.0
 _COARSE_ITERATIONS = 20
 _FINE_ITERATIONS = 4
 #: Fine correspondence distance, in units of ``pose_point_spacing``.
-_FINE_MATCH = 1.5
+_FINE_MATCH = 1.0
 #: Convergence: the coarse pass stops when a step rotates less than this (degrees) and
 #: moves less than this share of the spacing; the fine pass at a tenth of both.
 _COARSE_STOP_DEG = 0.05
