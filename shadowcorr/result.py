@@ -64,7 +64,8 @@ class ViewPoseCorrection(BaseModel):
         None, description="RMS point-to-plane distance to the overlapping neighbours after registration"
     )
     overlap: float | None = Field(
-        None, description="largest share (0-1) of this view's sampled surface that a neighbour also sees"
+        None, description="largest share (0-1) of matched surface among its registered pairs (share of the pair's "
+        "source view's sampled points within one point spacing of the other view's surface)"
     )
     neighbours: list[str] = Field(default_factory=list, description="views it was registered with")
     consistent: bool | None = Field(
