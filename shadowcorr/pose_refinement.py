@@ -25,8 +25,11 @@ much of that surface, so the views can be registered to each other:
    as it would with one view held fixed); the common motion of all cameras is invisible
    in the images and so is never "corrected".  Edges that disagree with the solution are
    dropped one at a time (worst first) and the graph solved again.
-4. **Bounds and honesty.**  A view whose correction exceeds ``pose_max_rotation_deg`` or
-   ``pose_max_translation`` keeps its pose (``correction_too_large``); a view left
+4. **Bounds and honesty.**  When no view would move by more than ``pose_min_rotation_deg``
+   and ``pose_min_translation`` (what registration itself resolves), every pose is kept
+   exactly (``unchanged``): clean poses are not perturbed by registration noise.  A view
+   whose correction exceeds ``pose_max_rotation_deg`` or ``pose_max_translation`` keeps
+   its pose (``correction_too_large``); a view left
    without an accepted pair keeps its pose (``not_registered``); both are removed from
    the graph, which is solved again without them.  Every view gets a report (applied
    correction, residual, overlap) and a warning when it still disagrees with its
@@ -305,12 +308,22 @@ def refine_poses(
     in_graph = np.zeros(n, dtype=bool)
     for e in edges:
         in_graph[[e.source, e.target]] = True
+    for k in np.flatnonzero(~in_graph):
+        if status[k] == "corrected":
+            status[k] = "not_registered"
+            why.setdefault(k, "no other view overlaps it enough")
+    # Corrections within the registration's own accuracy are noise, not information: when no
+    # view would move by more, the declared poses already agree and are left exactly as they are.
+    refined = [k for k in range(n) if status[k] == "corrected"]
+    if refined and all(sizes[k][0] < config.pose_min_rotation_deg
+                       and sizes[k][1] < config.pose_min_translation for k in refined):
+        for k in refined:
+            status[k] = "unchanged"
+            why[k] = (f"the declared pose agrees with its neighbours to within {sizes[k][0]:.3f} deg and "
+                      f"{sizes[k][1] / scale:.3g} {bundle.units} (under pose_min_rotation_deg / pose_min_translation); kept")
     reports, views = [], []
     for k, view in enumerate(bundle.views):
         mine = [e for e in edges if k in (e.source, e.target)]
-        if status[k] == "corrected" and not in_graph[k]:
-            status[k] = "not_registered"
-            why.setdefault(k, "no other view overlaps it enough")
         correction = np.eye(4)
         if status[k] == "corrected":
             r, t = rotations[k], translations[k]
@@ -318,7 +331,7 @@ def refine_poses(
             correction[:3, 3] = (t + centre - r @ centre) / scale  # centred config frame -> bundle world frame
         angle, shift = sizes[k] if status[k] == "corrected" else (0.0, 0.0)
         miss = max((_edge_disagreement(e, rotations, translations, radius) for e in mine), default=0.0)
-        consistent = miss <= agree / 2.0 if status[k] == "corrected" else None
+        consistent = miss <= agree / 2.0 if status[k] in ("corrected", "unchanged") else None
         message = why.get(k) if status[k] != "corrected" else None
         if consistent is False:
             message = f"refined pose still disagrees with its neighbours by {miss / scale:.3g} {bundle.units}"
@@ -338,7 +351,7 @@ def pose_warnings(reports: list[ViewPoseCorrection]) -> list[str]:
     """One warning per view whose pose could not be refined or still looks inconsistent."""
     out = []
     for r in reports:
-        if r.status != "corrected":
+        if r.status not in ("corrected", "unchanged"):
             out.append(f"pose of view {r.view} not refined ({r.status.replace('_', ' ')}): {r.message}")
         elif r.consistent is False:
             out.append(f"pose of view {r.view}: {r.message}")

@@ -42,7 +42,7 @@ class ObjectSummary(BaseModel):
     num_voxels: int
 
 
-PoseStatus = Literal["corrected", "not_registered", "correction_too_large"]
+PoseStatus = Literal["corrected", "unchanged", "not_registered", "correction_too_large"]
 
 
 class ViewPoseCorrection(BaseModel):
@@ -50,7 +50,9 @@ class ViewPoseCorrection(BaseModel):
 
     view: str
     status: PoseStatus = Field(
-        description="'corrected': registered with its neighbours and its pose moved by `correction`; "
+        description="'corrected': registered with its neighbours and its pose moved by `correction`; 'unchanged': "
+        "registered, and no view of the scene needed a correction larger than the refinement resolves, so "
+        "every pose was kept exactly; "
         "'not_registered': too little overlap, degenerate or poorly fitting surface, or inconsistent with "
         "the others - its pose is kept; 'correction_too_large': the correction exceeded the configured "
         "bound - its pose is kept"

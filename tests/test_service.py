@@ -209,7 +209,7 @@ def test_refine_poses_query_option_reports_every_view(client, sample):
     assert r.status_code == 200, r.text
     body = r.json()
     assert [p["view"] for p in body["poses"]] == [v["name"] for v in manifest["views"]]
-    assert all(p["status"] == "corrected" and p["rotation_deg"] < 0.1 for p in body["poses"])
+    assert all(p["status"] == "unchanged" and p["rotation_deg"] == 0.0 for p in body["poses"])
     assert local.poses is None and "poses" in body["timings_ms"]
 
 
