@@ -44,9 +44,11 @@ _EXPORTS = {
     "correspond": "pipeline",
     "embed": "pipeline",
     "prepare": "pipeline",
+    "refine_poses": "pose_refinement",
     "ObjectSummary": "result",
     "Result": "result",
     "SegmentLabel": "result",
+    "ViewPoseCorrection": "result",
     "VoxelScene": "voxel_scene",
 }
 
@@ -74,5 +76,6 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from .io import BundleLimits, load_bundle, load_bundle_from_parts, write_bundle, write_bundle_archive
     from .nn import Model, ModelCard, load_model, save_model
     from .pipeline import correspond, embed, prepare
-    from .result import ObjectSummary, Result, SegmentLabel
+    from .pose_refinement import refine_poses
+    from .result import ObjectSummary, Result, SegmentLabel, ViewPoseCorrection
     from .voxel_scene import VoxelScene

@@ -210,6 +210,7 @@ def assign(
         timings_ms={k: round(v, 3) for k, v in timings.items()},
         warnings=warnings,
         metrics=result_metrics,
+        poses=scene.poses,
         config=config.model_dump(mode="json"),
     )
 

@@ -29,6 +29,8 @@ def _add_method_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bandwidth", type=float, help="MeanShift bandwidth of shadowcorr and meanshift (default 0.7; baseline 0.2)")
     p.add_argument("--no-split-components", action="store_true", help="keep disconnected blobs of one mask value together")
     p.add_argument("--min-blob-pixels", type=int, help="ignore blobs with fewer pixels (default 50)")
+    p.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
+                   help="register the views' depth to each other and correct their poses first (default: the configuration's)")
 
 
 def _config(args: argparse.Namespace):
@@ -41,6 +43,8 @@ def _config(args: argparse.Namespace):
         options["split_components"] = False
     if args.min_blob_pixels is not None:
         options["min_blob_pixels"] = args.min_blob_pixels
+    if args.refine_poses is not None:
+        options["refine_poses"] = args.refine_poses
     return ShadowCorrConfig(**options)
 
 

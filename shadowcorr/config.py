@@ -18,7 +18,7 @@ NETWORK_METHODS = ("shadowcorr", "fused")
 
 #: Options a remote caller may change per request without making the model's
 #: inputs inconsistent with its training (used by the HTTP service).
-REQUEST_OPTIONS = ("bandwidth", "split_components", "min_blob_pixels", "min_cluster_size")
+REQUEST_OPTIONS = ("bandwidth", "split_components", "min_blob_pixels", "min_cluster_size", "refine_poses")
 
 
 class ShadowCorrConfig(BaseModel):
@@ -27,6 +27,16 @@ class ShadowCorrConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     units: Literal["m", "cm", "mm"] = "cm"
+
+    # step 0: pose refinement (shadowcorr.pose_refinement)
+    refine_poses: bool = Field(False, description="register the views' full depth to each other and correct their poses first")
+    pose_point_spacing: float = Field(12.0, gt=0, description="registration point cloud: one point per cell of this size (units)")
+    pose_max_rotation_deg: float = Field(5.0, gt=0, le=30, description="larger corrections are refused (the pose is kept)")
+    pose_max_translation: float = Field(50.0, gt=0, description="camera centre moves beyond this are refused (units)")
+    pose_min_rotation_deg: float = Field(0.1, ge=0, description="when no view needs more (and no more than pose_min_translation), all poses are kept")
+    pose_min_translation: float = Field(1.0, ge=0, description="see pose_min_rotation_deg (units)")
+    pose_min_overlap: float = Field(0.2, gt=0, le=1, description="view pairs sharing less of their surface are not registered")
+    pose_max_residual: float = Field(5.0, gt=0, description="registrations fitting worse (RMS point-to-plane, units) are not used")
 
     # segments
     split_components: bool = Field(True, description="split disconnected blobs of one mask value into segments")

@@ -16,6 +16,7 @@ from .assignment import assign
 from .bundle import SceneBundle, unit_scale
 from .config import NETWORK_METHODS, ShadowCorrConfig
 from .nn import Model, load_model, run_batched
+from .pose_refinement import pose_warnings, refine_poses
 from .result import ModelInfo, Result
 from .segments import extract_segments
 from .shadows import ShadowVoxels, cast_shadows, raw_shells, segment_shells
@@ -24,7 +25,7 @@ from .voxel_scene import VoxelScene, build_voxel_scene
 
 
 def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> VoxelScene:
-    """Segments, then the evidence the configured method reads, of one scene.
+    """Pose refinement (when asked for), segments, then the evidence the configured method reads.
 
     ``shadowcorr``, ``meanshift`` and ``fused`` cast shadows and build the consensus voxels and
     network features; ``projection`` and ``fused`` project every segment into the other
@@ -32,6 +33,11 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     """
     config = config or ShadowCorrConfig()
     timings: dict[str, float] = {}
+    poses = None
+    if config.refine_poses:
+        t0 = time.perf_counter()
+        bundle, poses = refine_poses(bundle, config)
+        timings["poses"] = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
     segments = extract_segments(bundle, config)
     if segments.num_segments == 0:
@@ -58,7 +64,8 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
         bundle.name, bundle.units, unit_scale(bundle.units, config.units), segments, shells, shadows, config, timings
     )
     scene.surface = surface
-    scene.warnings[:0] = list(bundle.warnings)
+    scene.poses = poses
+    scene.warnings[:0] = list(bundle.warnings) + (pose_warnings(poses) if poses else [])
     return scene
 
 

@@ -45,6 +45,41 @@ class ObjectSummary(BaseModel):
     num_voxels: int
 
 
+PoseStatus = Literal["corrected", "unchanged", "not_registered", "correction_too_large"]
+
+
+class ViewPoseCorrection(BaseModel):
+    """What pose refinement did to one view (``refine_poses``). Lengths in the bundle's units."""
+
+    view: str
+    status: PoseStatus = Field(
+        description="'corrected': registered with its neighbours and its pose moved by `correction`; 'unchanged': "
+        "registered, and no view of the scene needed a correction larger than the refinement resolves, so "
+        "every pose was kept exactly; "
+        "'not_registered': too little overlap, degenerate or poorly fitting surface, or inconsistent with "
+        "the others - its pose is kept; 'correction_too_large': the correction exceeded the configured "
+        "bound - its pose is kept"
+    )
+    rotation_deg: float = Field(description="rotation of the applied correction (0 when the pose was kept)")
+    translation: float = Field(description="how far the camera centre moved (0 when the pose was kept)")
+    correction: list[list[float]] = Field(
+        description="4x4 world-frame rigid transform applied: refined pose = correction @ declared pose"
+    )
+    residual: float | None = Field(
+        None, description="RMS point-to-plane distance to the overlapping neighbours after registration"
+    )
+    overlap: float | None = Field(
+        None, description="largest share (0-1) of matched surface among its registered pairs (share of the pair's "
+        "source view's sampled points within one point spacing of the other view's surface)"
+    )
+    neighbours: list[str] = Field(default_factory=list, description="views it was registered with")
+    consistent: bool | None = Field(
+        None, description="false when the refined pose still disagrees with its neighbours (a warning says so); "
+        "none when the pose was kept"
+    )
+    message: str | None = Field(None, description="why the pose was kept, or what looks inconsistent")
+
+
 class ModelInfo(BaseModel):
     name: str
     version: str
@@ -64,6 +99,9 @@ class Result(BaseModel):
     warnings: list[str] = Field(default_factory=list)
     metrics: dict[str, float | int] | None = Field(
         None, description="quality against the bundle's ground truth, when it has one and metrics were asked for"
+    )
+    poses: list[ViewPoseCorrection] | None = Field(
+        None, description="per-view pose refinement report, when `refine_poses` was on"
     )
     config: dict[str, object] | None = Field(
         None, description="the ShadowCorrConfig the result was computed with (how segments were cut, clustering, ...)"

@@ -123,7 +123,8 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
                  np.concatenate(instances), np.concatenate(components))
 
 
-def _back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: np.ndarray) -> np.ndarray:
+def back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """(N, 3) world points (bundle units) of pixels (row v, column u) with z-depth ``depth``, through the view's pose."""
     k = view.intrinsics
     x = (pixels_u - k.cx) * depth / k.fx
     y = (pixels_v - k.cy) * depth / k.fy
@@ -171,7 +172,7 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         blob_of_pixel = np.repeat(np.arange(blobs.lengths.size), blobs.lengths)[valid]
         flat = blobs.pixels[valid]
         vv, uu = np.divmod(flat, view.mask.shape[1])
-        pts = _back_project(view, vv.astype(np.float64), uu.astype(np.float64), d[valid].astype(np.float64))
+        pts = back_project(view, vv.astype(np.float64), uu.astype(np.float64), d[valid].astype(np.float64))
         inst, comp, sizes = blobs.instance, blobs.component, blobs.lengths
         points.append(pts * scale)
         lengths.append(np.bincount(blob_of_pixel, minlength=inst.size))

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import ShadowCorrConfig
+from .result import ViewPoseCorrection
 from .grid_keys import pack_cell_keys, unique_keys
 from .segment_embedding import cooccurrence, train_segment_embeddings, voxel_embeddings
 from .segments import Segments
@@ -63,6 +64,7 @@ class VoxelScene:
     timings_ms: dict[str, float] = field(default_factory=dict)
     # cross-view surface evidence (methods 'projection' and 'fused'); None otherwise
     surface: SurfaceEvidence | None = None
+    poses: list[ViewPoseCorrection] | None = None  # pose refinement report, when it ran
 
     @property
     def num_segments(self) -> int:

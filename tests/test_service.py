@@ -176,7 +176,8 @@ def test_health_info_metrics(client, server):
     assert info["model"]["sha256"] == body["model"]["sha256"]
     assert info["model"]["card"]["voxel_size"] == 8.0 and info["model"]["card"]["units"] == "cm"
     assert info["limits"]["max_body_bytes"] == BODY_LIMIT and info["limits"]["max_views"] == 8
-    assert set(info["request_options"]) == {"bandwidth", "split_components", "min_blob_pixels", "min_cluster_size"}
+    assert set(info["request_options"]) == {"bandwidth", "split_components", "min_blob_pixels", "min_cluster_size",
+                                            "refine_poses"}
     assert info["settings"]["workers"] == 2 and info["settings"]["auth"] == "none"
     assert "auth_token" not in info["settings"]
 
@@ -199,7 +200,17 @@ def test_health_info_metrics(client, server):
     assert "multipart/form-data" in post["requestBody"]["content"]
     assert post["responses"]["200"]["content"]["application/json"]["schema"]["$ref"].endswith("/Result")
     assert {p["name"] for p in post["parameters"]} >= {"bandwidth", "split_components", "min_blob_pixels",
-                                                        "min_cluster_size", "method", "metrics"}
+                                                        "min_cluster_size", "refine_poses", "method", "metrics"}
+
+
+def test_refine_poses_query_option_reports_every_view(client, sample):
+    path, manifest, _, local = sample
+    r = client.post("/correspond", params={"refine_poses": "true"}, files={"bundle": ("scene.zip", path.read_bytes())})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert [p["view"] for p in body["poses"]] == [v["name"] for v in manifest["views"]]
+    assert all(p["status"] == "unchanged" and p["rotation_deg"] == 0.0 for p in body["poses"])
+    assert local.poses is None and "poses" in body["timings_ms"]
 
 
 def test_sample_scene_parts_and_zip_match_local(client, sample):

@@ -48,6 +48,16 @@ def noisy_pose(rng: np.random.Generator, pose: np.ndarray, sigma_t: float, sigma
     return out
 
 
+def perturbed_pose(rng: np.random.Generator, pose: np.ndarray, rotation_deg: float, translation: float) -> np.ndarray:
+    """A pose off by exactly ``rotation_deg`` (about a random axis through the camera centre)
+    and ``translation`` (in a random direction): the worst case of a pose error bound."""
+    axis, direction = rng.normal(size=3), rng.normal(size=3)
+    out = pose.copy()
+    out[:3, :3] = _rotation_from_vector(axis / np.linalg.norm(axis) * np.deg2rad(rotation_deg)) @ pose[:3, :3]
+    out[:3, 3] = pose[:3, 3] + direction / np.linalg.norm(direction) * translation
+    return out
+
+
 def morph_mask(ids: np.ndarray, px: int) -> np.ndarray:
     """Grow (``px`` > 0) every instance into the background, or erode it (``px`` < 0).
 

@@ -1,0 +1,149 @@
+"""Pose refinement (``refine_poses``) on the real sample scene with known pose errors."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from shadowcorr import ShadowCorrConfig, correspond
+from shadowcorr.bundle import Intrinsics, SceneBundle, View
+from shadowcorr.cli import build_parser, _config
+from shadowcorr.convert import load_ue_scene
+from shadowcorr.pose_refinement import pose_errors, refine_poses
+from shadowcorr.poses import look_at_pose
+from shadowcorr.result import Result
+from shadowcorr.synth.noise import perturbed_pose
+
+from .paths import SAMPLE_DIR as SAMPLE
+
+CONFIG = ShadowCorrConfig(refine_poses=True)
+
+
+@pytest.fixture(scope="module")
+def truth() -> SceneBundle:
+    return load_ue_scene(SAMPLE, "2001", [0, 2, 4, 6])
+
+
+def perturbed(bundle: SceneBundle, rotation_deg: float, translation: float, seed: int = 0) -> SceneBundle:
+    rng = np.random.default_rng(seed)
+    views = [dataclasses.replace(v, pose=perturbed_pose(rng, v.pose, rotation_deg, translation)) for v in bundle.views]
+    return dataclasses.replace(bundle, views=views)
+
+
+def poses(bundle: SceneBundle) -> np.ndarray:
+    return np.stack([v.pose for v in bundle.views])
+
+
+def test_rotated_and_moved_cameras_are_corrected_back(truth):
+    noisy = perturbed(truth, 2.0, 5.0)
+    refined, reports = refine_poses(noisy, CONFIG)
+    before_deg, before_cm = pose_errors(poses(noisy), poses(truth), common_motion=True)
+    after_deg, after_cm = pose_errors(poses(refined), poses(truth), common_motion=True)
+    assert before_deg.min() > 1.0
+    assert after_deg.max() < 0.1 and after_cm.max() < 1.0, (after_deg, after_cm)
+    assert [r.status for r in reports] == ["corrected"] * 4
+    assert all(r.consistent for r in reports)
+    for view, r in zip(noisy.views, reports):
+        assert 0.5 < r.rotation_deg < 4.0
+        assert r.residual is not None and 0 < r.residual < CONFIG.pose_max_residual
+        assert r.overlap is not None and r.overlap >= CONFIG.pose_min_overlap
+        assert r.neighbours and view.name not in r.neighbours
+    # The report's correction is what was applied, and the input bundle is untouched.
+    for before, after, r in zip(noisy.views, refined.views, reports):
+        np.testing.assert_allclose(np.asarray(r.correction) @ before.pose, after.pose, atol=1e-6)
+    assert not np.allclose(poses(noisy), poses(refined))
+    assert np.allclose(poses(noisy), poses(perturbed(truth, 2.0, 5.0)))
+
+
+def test_clean_poses_are_kept_exactly(truth):
+    refined, reports = refine_poses(truth, CONFIG)
+    assert [r.status for r in reports] == ["unchanged"] * 4
+    assert all(r.rotation_deg == 0.0 and r.consistent and r.residual and r.neighbours for r in reports)
+    np.testing.assert_array_equal(poses(refined), poses(truth))
+    # Without the dead band, the registration's own noise is what would be applied.
+    nudged, reports = refine_poses(truth, CONFIG.with_options(pose_min_rotation_deg=0.0, pose_min_translation=0.0))
+    assert [r.status for r in reports] == ["corrected"] * 4
+    deg, cm = pose_errors(poses(nudged), poses(truth))
+    assert 0 < deg.max() < 0.1 and cm.max() < 1.0, (deg, cm)
+
+
+def test_a_view_of_another_place_is_reported_and_keeps_its_pose(truth):
+    # cam1 declares a pose 40 m away: its surface overlaps no other view's.
+    stray = load_ue_scene(SAMPLE, "2001", [1]).views[0]
+    far = stray.pose.copy()
+    far[:3, 3] += [4000.0, 0.0, 0.0]
+    bundle = dataclasses.replace(truth, views=[*perturbed(truth, 1.0, 2.0).views, dataclasses.replace(stray, pose=far)])
+    refined, reports = refine_poses(bundle, CONFIG)
+    assert reports[-1].status == "not_registered"
+    assert reports[-1].message and reports[-1].rotation_deg == 0.0 and reports[-1].translation == 0.0
+    np.testing.assert_array_equal(refined.views[-1].pose, far)
+    assert [r.status for r in reports[:4]] == ["corrected"] * 4
+    after_deg, _ = pose_errors(poses(refined)[:4], poses(truth), common_motion=True)
+    assert after_deg.max() < 0.1
+
+
+def test_corrections_beyond_the_bound_are_refused(truth):
+    noisy = perturbed(truth, 2.0, 5.0, seed=1)
+    refined, reports = refine_poses(noisy, CONFIG.with_options(pose_max_rotation_deg=0.5))
+    refused = [r for r in reports if r.status == "correction_too_large"]
+    assert refused, [r.status for r in reports]
+    for view, r in zip(noisy.views, reports):
+        assert r.rotation_deg <= 0.5
+        if r.status != "corrected":
+            np.testing.assert_array_equal(refined.views[[v.name for v in refined.views].index(view.name)].pose, view.pose)
+            assert "exceeds the bound" in r.message or r.status == "not_registered"
+
+
+def test_units_do_not_change_the_correction(truth):
+    noisy = perturbed(truth, 1.5, 4.0, seed=2)
+    in_metres = dataclasses.replace(noisy, units="m", views=[
+        dataclasses.replace(v, depth=v.depth * 0.01, pose=np.r_[np.c_[v.pose[:3, :3], v.pose[:3, 3] * 0.01], [[0, 0, 0, 1]]])
+        for v in noisy.views
+    ])
+    _, in_cm = refine_poses(noisy, CONFIG)
+    _, in_m = refine_poses(in_metres, CONFIG)
+    for a, b in zip(in_cm, in_m):
+        assert a.status == b.status == "corrected"
+        assert a.rotation_deg == pytest.approx(b.rotation_deg, abs=1e-3)
+        assert a.translation * 0.01 == pytest.approx(b.translation, abs=1e-4)
+
+
+def test_the_result_carries_the_report_and_recovers_purity(truth):
+    noisy = perturbed(truth, 2.0, 5.0)
+    plain = correspond(noisy, config=ShadowCorrConfig(refine_poses=False), metrics=True)
+    refined = correspond(noisy, config=CONFIG, metrics=True)
+    assert plain.poses is None and "poses" not in plain.timings_ms
+    assert [p.view for p in refined.poses] == [v.name for v in noisy.views]
+    assert refined.timings_ms["poses"] > 0
+    assert refined.metrics["average_purity"] >= 99.0 > plain.metrics["average_purity"]
+    again = Result.model_validate_json(refined.model_dump_json())
+    assert again.poses == refined.poses
+
+
+def test_cli_flag_sets_the_option():
+    parser = build_parser()
+    assert _config(parser.parse_args(["correspond", "x", "--refine-poses"])).refine_poses is True
+    assert _config(parser.parse_args(["correspond", "x", "--no-refine-poses"])).refine_poses is False
+    default = _config(parser.parse_args(["correspond", "x"])).refine_poses
+    assert default is ShadowCorrConfig().refine_poses
+
+
+def test_flat_ground_is_degenerate_and_keeps_the_poses():
+    """A plane leaves in-plane motions free: the views are reported, not 'corrected' along them."""
+    k = Intrinsics(fx=270.0, fy=270.0, cx=160.0, cy=90.0, width=320, height=180)
+    v, u = np.mgrid[0:k.height, 0:k.width].astype(np.float64)
+    rays = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u)], axis=-1)
+    views = []
+    for i, azimuth in enumerate(np.deg2rad([0, 90, 180, 270])):
+        pose = look_at_pose([750 * np.cos(azimuth), 750 * np.sin(azimuth), 330.0], [0.0, 0.0, 0.0])
+        down = (rays @ pose[:3, :3].T)[..., 2]
+        depth = np.where(down < 0, -pose[2, 3] / np.minimum(down, -1e-9), 0.0)  # z-depth of the plane z = 0
+        views.append(View(name=f"cam{i}", pose=pose, intrinsics=k, depth=depth.astype(np.float32),
+                          mask=np.zeros(depth.shape, np.int32)))
+    flat = perturbed(SceneBundle(units="cm", views=views), 1.0, 2.0)
+    refined, reports = refine_poses(flat, CONFIG)
+    assert [r.status for r in reports] == ["not_registered"] * 4
+    assert all("degenerate" in r.message for r in reports), [r.message for r in reports]
+    assert np.array_equal(poses(refined), poses(flat))
