@@ -52,7 +52,8 @@ def run_local(
 
     At most ``2 * workers`` scenes are submitted at once, so a dataset of any size never
     sits in memory.  Closing the generator (Ctrl-C in the consumer) cancels the scenes
-    not yet started.
+    not yet started.  As with any spawn or forkserver pool, a script calling this needs
+    an ``if __name__ == "__main__":`` guard (the workers import the main module).
     """
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")

@@ -119,6 +119,9 @@ def run_ray(
         context = ray.data.DataContext.get_current()
         context.enable_progress_bars = False  # the runner draws its own bar, counting finished scenes
         context.print_on_execution_start = False
+        # The task column holds Python objects by design (see the module docstring): say so,
+        # which also silences Ray's warning about falling back to them.
+        context.enable_fallback_to_arrow_object_ext_type = True
         # One block per scene: every scene is its own prepare task, spread over the cluster.
         ds = ray.data.from_items([{"task": t} for t in tasks], override_num_blocks=len(tasks))
         ds = ds.map(_prepare_row, num_cpus=1)

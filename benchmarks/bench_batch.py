@@ -1,21 +1,26 @@
 """Scenes per second of ``shadowcorr batch`` with the local and the Ray engine, with the per-stage split.
 
-Generates N small synthetic scenes once (cached under ``out/bench_batch/scenes_N``: 7-8
-rocks, four 320x180 views, numpy raster renderer), then runs every engine over all of
-them into a fresh results file and prints, per engine:
+Generates N small synthetic scenes once (cached under ``out/bench_batch/``: 7-8 rocks,
+four 320x180 views, numpy raster renderer), starts a local Ray instance with
+``--workers`` CPUs (timed), then runs the engines in turn, ``--repeats`` rounds, each run
+over all N scenes into a fresh results file.  The first round is cold (the local pool's
+forkserver and Ray's worker processes start and import torch); later rounds are warm
+(Ray keeps its workers; the local pool re-forks from its preloaded server).  Per engine
+it prints:
 
-* wall time and scenes/s end to end (Ray: starting the local Ray instance included),
-  and in steady state (from the first finished scene to the last);
-* the per-stage split: the sum over scenes of each ``timings_ms`` stage, in seconds;
-* whether every engine gave every scene the same labels as the first engine;
-* the ratio Ray / local of the end-to-end and the steady-state throughput.
+* wall time and scenes/s, cold and warm (median over the warm rounds), and when the
+  first record arrived;
+* the per-stage split: the sum over scenes of each ``timings_ms`` stage, in seconds (the
+  CPU time of each stage; ``network`` is each scene's share of its batch's forward pass);
+* whether every engine gave every scene the same labels as the first one;
+* the ratio Ray / local of the throughput: warm, and cold end to end with Ray's start-up.
 
-``--parent-network`` also measures the local variant where workers prepare and assign
-and the parent runs the network batched over the prepared scenes (the design that
+``--parent-network`` also measures (once, cold) the local variant where workers prepare
+and assign and the parent runs the network batched over the prepared scenes (the design
 ``batch.local`` was measured against and does not use).
 
     python benchmarks/bench_batch.py                      # 50 scenes, 2 workers, local + ray
-    python benchmarks/bench_batch.py --scenes 12 --engines local ray --parent-network
+    python benchmarks/bench_batch.py --scenes 16 --repeats 3 --parent-network
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import statistics
 import tempfile
 import time
 from collections import defaultdict
@@ -60,7 +66,9 @@ def _parent_network_records(scenes: Path, workers: int, batch_size: int) -> Iter
     model = load_model()
     config = ShadowCorrConfig()
     queue = [SceneTask(source=s, config=config) for s in discover_scenes(scenes)]
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=single_thread_numerics) as pool:
+    context = mp.get_context("forkserver")  # as batch.local does
+    context.set_forkserver_preload(["batch.stages"])
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=single_thread_numerics) as pool:
         preparing = {pool.submit(prepare_task, t) for t in queue}
         finishing: set = set()
         ready: list[SceneTask] = []
@@ -96,13 +104,16 @@ def _run(name: str, scenes: Path, out: Path, args: argparse.Namespace) -> dict:
     for record in latest.values():
         for stage, ms in ((record.result or {}).get("timings_ms") or {}).items():
             stages[stage] += ms / 1e3
-    steady = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 and stamps[-1] > stamps[0] else float("nan")
     return {
         "engine": name, "scenes": len(stamps), "ok": sum(r.ok for r in latest.values()), "wall_s": wall,
-        "scenes_per_s": len(stamps) / wall, "steady_scenes_per_s": steady,
+        "scenes_per_s": len(stamps) / wall,
         "first_scene_after_s": stamps[0] - t0 if stamps else float("nan"), "stages_s": dict(stages),
         "labels": {n: [s["object"] for s in (r.result or {}).get("segments", [])] for n, r in latest.items()},
     }
+
+
+def _median(values: list[float]) -> float:
+    return statistics.median(values) if values else float("nan")
 
 
 def main() -> None:
@@ -112,38 +123,57 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--actors", type=int, default=1)
     parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--repeats", type=int, default=2, help="rounds over the engines; the first is cold")
     parser.add_argument("--engines", nargs="+", default=["local", "ray"], choices=["local", "ray"])
     parser.add_argument("--parent-network", action="store_true", help="also measure the parent-batched local variant")
     parser.add_argument("--json", help="also write the figures here")
     args = parser.parse_args()
 
     scenes = scene_cache(args.scenes, args.seed, args.workers)
-    engines = list(args.engines) + (["local-parent-network"] if args.parent_network else [])
-    rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in engines:
-            rows.append(_run(name, scenes, Path(tmp) / f"{name}.jsonl", args))
+    ray_start_s = 0.0
+    if "ray" in args.engines:
+        from batch.ray_engine import import_ray
 
-    stage_names = [s for s in rows[0]["stages_s"] if s != "total"]
+        ray = import_ray()
+        t0 = time.perf_counter()
+        ray.init(num_cpus=args.workers, include_dashboard=False, log_to_driver=False)
+        ray_start_s = time.perf_counter() - t0
+    runs: dict[str, list[dict]] = defaultdict(list)
+    with tempfile.TemporaryDirectory() as tmp:
+        for rnd in range(args.repeats):
+            for name in args.engines:
+                runs[name].append(_run(name, scenes, Path(tmp) / f"{name}_{rnd}.jsonl", args))
+        if args.parent_network:
+            runs["local-parent-network"].append(_run("local-parent-network", scenes, Path(tmp) / "pn.jsonl", args))
+
     print(f"{args.scenes} synthetic scenes (7-8 rocks, 4 views of 320x180), {args.workers} workers, "
-          f"Ray: {args.actors} actor(s), batch {args.batch_size}")
-    print(f"{'engine':<22}{'ok':>4}{'wall s':>9}{'scenes/s':>10}{'steady/s':>10}{'1st s':>7}  same labels")
-    reference = rows[0]["labels"]
-    for r in rows:
-        same = all(r["labels"].get(n) == labels for n, labels in reference.items())
-        print(f"{r['engine']:<22}{r['ok']:>4}{r['wall_s']:>9.1f}{r['scenes_per_s']:>10.3f}"
-              f"{r['steady_scenes_per_s']:>10.3f}{r['first_scene_after_s']:>7.1f}  {same}")
-    print("per-stage CPU time, summed over scenes (s): " + ", ".join(stage_names))
-    for r in rows:
-        print(f"  {r['engine']:<20}" + " ".join(f"{r['stages_s'].get(s, 0.0):7.1f}" for s in stage_names)
-              + f"   total {r['stages_s'].get('total', 0.0):.1f}")
-    by_name = {r["engine"]: r for r in rows}
-    if "local" in by_name and "ray" in by_name:
-        loc, ray = by_name["local"], by_name["ray"]
-        print(f"Ray / local throughput: end to end {ray['scenes_per_s'] / loc['scenes_per_s']:.2f}, "
-              f"steady state {ray['steady_scenes_per_s'] / loc['steady_scenes_per_s']:.2f}")
+          f"Ray: {args.actors} actor(s), batch {args.batch_size}; Ray start-up (ray.init) {ray_start_s:.1f} s")
+    print(f"{'engine':<22}{'ok':>4}{'cold s':>8}{'cold/s':>8}{'1st s':>7}{'warm s':>8}{'warm/s':>8}{'1st s':>7}"
+          f"  same labels")
+    names = list(runs)
+    reference = runs[names[0]][0]["labels"]
+    summary = {}
+    for name in names:
+        cold, warm = runs[name][0], runs[name][1:]
+        same = all(r["labels"].get(n) == labels for r in runs[name] for n, labels in reference.items())
+        warm_s = _median([r["wall_s"] for r in warm])
+        summary[name] = {"cold_wall_s": cold["wall_s"], "warm_wall_s": warm_s}
+        print(f"{name:<22}{cold['ok']:>4}{cold['wall_s']:>8.1f}{cold['scenes_per_s']:>8.3f}"
+              f"{cold['first_scene_after_s']:>7.1f}{warm_s:>8.1f}{args.scenes / warm_s:>8.3f}"
+              f"{_median([r['first_scene_after_s'] for r in warm]):>7.1f}  {same}")
+    stage_names = [s for s in runs[names[0]][0]["stages_s"] if s != "total"]
+    print("per-stage CPU time, summed over scenes (s), last run of each engine: " + ", ".join(stage_names))
+    for name in names:
+        stages = runs[name][-1]["stages_s"]
+        print(f"  {name:<20}" + " ".join(f"{stages.get(s, 0.0):6.1f}" for s in stage_names)
+              + f"   total {stages.get('total', 0.0):.1f}")
+    if "local" in summary and "ray" in summary:
+        loc, ray_ = summary["local"], summary["ray"]
+        print(f"Ray / local throughput: warm {loc['warm_wall_s'] / ray_['warm_wall_s']:.2f}, cold end to end "
+              f"{loc['cold_wall_s'] / (ray_['cold_wall_s'] + ray_start_s):.2f} (Ray start-up included)")
     if args.json:
-        Path(args.json).write_text(json.dumps([{k: v for k, v in r.items() if k != "labels"} for r in rows], indent=1))
+        Path(args.json).write_text(json.dumps({"ray_start_s": ray_start_s, "runs": {
+            n: [{k: v for k, v in r.items() if k != "labels"} for r in rs] for n, rs in runs.items()}}, indent=1))
 
 
 if __name__ == "__main__":
