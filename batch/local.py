@@ -2,10 +2,10 @@
 
 Each worker loads the model once and runs prepare -> embed -> assign on its scene.
 Measured against the alternative (workers prepare and assign, the parent batches the
-network): the per-worker network was faster on 2 cores (see ``benchmarks/bench_batch.py``
-and the README), because the forward pass is a small share of a scene's time while
-shipping every voxel scene to the parent and back, and a parent thread competing with
-the workers for the same cores, cost more than batching saves.
+network; ``benchmarks/bench_batch.py --parent-network``): no faster on 2 cores (79 vs 83 s
+for 50 scenes, within the machine's noise) and more CPU per scene (shipping every voxel
+scene to the parent and back, a parent competing with the workers for the cores), since
+the forward pass is only about a tenth of a scene's CPU time; so the simpler design stays.
 """
 
 from __future__ import annotations
