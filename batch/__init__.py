@@ -1,0 +1,23 @@
+"""Batch correspondence over whole datasets: ``shadowcorr batch``.
+
+An application built on the library, like the HTTP service: it finds every scene of a
+dataset (the discovery of ``shadowcorr-client upload-dataset``), runs the library's
+``prepare`` -> ``embed`` -> ``assign`` on each, and appends one JSON line per scene to a
+results file in the ``upload-dataset`` record shape, resumable.  Two engines:
+
+* ``local`` -- a process pool on this machine (:mod:`batch.local`);
+* ``ray`` -- a Ray Data pipeline on a local Ray instance or a cluster
+  (:mod:`batch.ray_engine`; optional extra ``pip install "shadowcorr[ray]"``).
+
+::
+
+    from batch import BatchOptions, run_batch
+
+    run = run_batch("datasets/field7", "out/field7.jsonl", BatchOptions(engine="ray", workers=2))
+    print(run.summary)
+"""
+
+from .runner import BatchOptions, BatchRun, plan_batch, run_batch
+from .stages import SceneTask
+
+__all__ = ["BatchOptions", "BatchRun", "SceneTask", "plan_batch", "run_batch"]

@@ -1,0 +1,112 @@
+"""``shadowcorr batch``: label every scene of a dataset, on this machine or a Ray cluster.
+
+Registered in the ``shadowcorr.commands`` entry-point group (pyproject.toml), like
+``serve``, so the library's CLI never imports this package by name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Any
+
+from .runner import ENGINES, BatchOptions, BatchRun, describe_plan, print_failures, run_batch
+
+__all__ = ["add_batch_parser", "run_batch_command", "options_from_args"]
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``batch`` sub-command to an argparse ``subparsers`` object; returns its parser."""
+    from shadowcorr.cli import _add_method_options, _cameras
+
+    p = subparsers.add_parser(
+        "batch",
+        help="label every scene of a dataset (local process pool or Ray), resumable",
+        description="Label every scene under INPUT (bundle folders, archives, Unreal-layout sets) and append "
+                    "one JSON line per scene to --out. Run the same command again to resume: scenes already "
+                    "'ok' in the results file are skipped.",
+    )
+    p.add_argument("input", metavar="INPUT", help="dataset directory, bundle or archive")
+    p.add_argument("--out", required=True, metavar="RESULTS.jsonl", help="results file (appended to)")
+    p.add_argument("--engine", choices=ENGINES, default="local",
+                   help="local: a process pool on this machine; ray: Ray Data (pip install \"shadowcorr[ray]\")")
+    p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1,
+                   help="worker processes (local) or CPUs of the local Ray instance (default: all cores)")
+    p.add_argument("--ray-address", metavar="ADDR",
+                   help="join this Ray cluster (auto, HOST:6379 or ray://HOST:10001) instead of starting one")
+    p.add_argument("--actors", type=_positive_int, default=1, help="Ray: network actors, each holding the model")
+    p.add_argument("--batch-size", type=_positive_int, default=8, help="Ray: prepared scenes per forward pass")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where the network runs")
+    p.add_argument("--cameras", type=_cameras, help="cameras to use from Unreal-layout sets (default: all)")
+    p.add_argument("--limit", type=_positive_int, help="run at most this many scenes in this run")
+    p.add_argument("--no-metrics", action="store_true", help="skip ground-truth metrics")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_method_options(p)
+    p.set_defaults(func=run_batch_command)
+    return p
+
+
+def options_from_args(args: argparse.Namespace) -> BatchOptions:
+    from shadowcorr.cli import _config
+
+    return BatchOptions(
+        engine=args.engine, workers=args.workers, ray_address=args.ray_address, actors=args.actors,
+        batch_size=args.batch_size, model_path=args.model, device=args.device, config=_config(args),
+        metrics=not args.no_metrics, cameras=args.cameras, limit=args.limit,
+    )
+
+
+def run_batch_command(args: argparse.Namespace) -> int:
+    """Entry point of ``shadowcorr batch``; returns the exit status (1 if a scene failed, 130 if interrupted)."""
+    from clients.records import format_summary
+    from tqdm import tqdm
+
+    options = options_from_args(args)
+    if options.engine == "ray":
+        from .ray_engine import import_ray
+
+        try:
+            import_ray()
+        except RuntimeError as exc:
+            print(f"shadowcorr batch: {exc}", file=sys.stderr)
+            return 2
+    bar = None
+
+    def on_start(run: BatchRun) -> None:
+        nonlocal bar
+        if run.unreadable_lines:
+            print(f"note: skipped {run.unreadable_lines} unreadable line(s) in {args.out} (an interrupted write)",
+                  file=sys.stderr)
+        print(describe_plan(run, args.input, options), file=sys.stderr)
+        bar = tqdm(total=len(run.todo), unit="scene", desc="batch", dynamic_ncols=True, disable=args.no_progress,
+                   file=sys.stderr)
+
+    def on_record(record) -> None:
+        assert bar is not None
+        if not record.ok:
+            bar.write(f"failed {record.scene}: {(record.error or {}).get('message')}", file=sys.stderr)
+        bar.update(1)
+
+    try:
+        run = run_batch(args.input, args.out, options, on_start=on_start, on_record=on_record)
+    finally:
+        if bar is not None:
+            bar.close()
+    assert run.summary is not None
+    print(format_summary(run.summary))
+    print_failures(run)
+    if run.interrupted:
+        print(f"interrupted: finished scenes are in {args.out}; run the same command again to resume", file=sys.stderr)
+        return 130
+    return 1 if run.summary.failed else 0

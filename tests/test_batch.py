@@ -1,0 +1,151 @@
+"""``shadowcorr batch``: both engines label like ``shadowcorr correspond``, and runs resume.
+
+The Ray engine runs on a real local Ray instance with 2 CPUs (started once for the
+module; the runs join it).  The dataset is small on purpose: three synthetic rock fields
+(physics-settled, 4 views of 320x180), one sphere scene as a .zip archive, and one
+broken bundle that must become a ``failed`` line without stopping the others.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shadowcorr.cli import main
+from tests.scenes import sphere_scene
+
+ray = pytest.importorskip("ray", reason='the Ray engine test needs pip install "shadowcorr[ray]"')
+
+SMALL_ROCKS = dict(
+    n_rocks=(4, 5), rock_subdivisions=3, field_radius=100.0, terrain_half_size=1000.0, terrain_resolution=96,
+    width=320, height=180, focal_px=1615.0 / 6, renderer="raster", background_depth="invalid", settle_max_time=2.0,
+)
+BROKEN = "zz_broken"  # sorts last, so --limit picks good scenes first
+
+
+def _records(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _labels(records: list[dict]) -> dict[str, list[int]]:
+    return {r["scene"]: [s["object"] for s in r["result"]["segments"]] for r in records if r["status"] == "ok"}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    from shadowcorr.io import write_bundle_archive
+    from shadowcorr.synth import SynthConfig, scene_seed, synthesize, write_scene
+
+    root = tmp_path_factory.mktemp("batch_dataset")
+    config = SynthConfig(**SMALL_ROCKS)
+    for i in range(3):
+        write_scene(synthesize(config, scene_seed(11, i)), root / "rocks" / f"field_{i}", config)
+    rng = np.random.default_rng(3)
+    spheres = sphere_scene([[0.0, 0.0, 45.0], [150.0, 30.0, 45.0], [60.0, 160.0, 45.0]], list(rng.uniform(38, 48, 3)),
+                           width=160, height_px=90)
+    write_bundle_archive(spheres, root / "spheres.zip")
+    (root / BROKEN).mkdir()
+    (root / BROKEN / "manifest.json").write_text('{"format": "shadowcorr-bundle", "version": 1, "views": []}')
+    return root
+
+
+@pytest.fixture(scope="module")
+def reference(dataset, tmp_path_factory) -> dict[str, list[int]]:
+    """Labels from ``shadowcorr correspond`` on each good scene."""
+    out = tmp_path_factory.mktemp("correspond")
+    scenes = {"rocks/field_0": dataset / "rocks" / "field_0", "rocks/field_1": dataset / "rocks" / "field_1",
+              "rocks/field_2": dataset / "rocks" / "field_2", "spheres.zip": dataset / "spheres.zip"}
+    labels = {}
+    for name, path in scenes.items():
+        result_file = out / (path.name + ".json")
+        assert main(["correspond", str(path), "--out", str(result_file)]) == 0
+        labels[name] = [s["object"] for s in json.loads(result_file.read_text())["segments"]]
+    assert any(len(set(v)) < len(v) for v in labels.values()), "some scene must merge segments into one object"
+    return labels
+
+
+@pytest.fixture(scope="module")
+def ray_instance():
+    """One local Ray instance with 2 CPUs for the module; ``batch --engine ray`` joins it."""
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def _check_run(records: list[dict], reference: dict[str, list[int]]) -> None:
+    assert _labels(records) == reference
+    (broken,) = [r for r in records if r["scene"] == BROKEN]
+    assert broken["status"] == "failed" and broken["error"]["type"] == "BundleError"
+    assert broken["error"]["problems"], "the bundle's problems are listed"
+    for r in records:
+        if r["status"] == "ok":
+            timings = r["result"]["timings_ms"]
+            assert {"load", "segments", "network", "clustering", "total"} <= set(timings)
+            assert r["latency_ms"] > 0 and r["result"]["metrics"]["average_purity"] > 0
+
+
+def test_local_engine_labels_like_correspond_and_resumes(dataset, reference, tmp_path, capsys):
+    out = tmp_path / "local.jsonl"
+    # An "interrupted" first run: two scenes only.
+    assert main(["batch", str(dataset), "--out", str(out), "--workers", "2", "--limit", "2", "--no-progress"]) == 0
+    first = _records(out)
+    assert [r["status"] for r in first] == ["ok", "ok"]
+    # A torn last line, as a run killed mid-write leaves it: skipped and terminated, not glued to the next record.
+    with open(out, "a") as fh:
+        fh.write('{"scene": "rocks/fiel')
+    code = main(["batch", str(dataset), "--out", str(out), "--workers", "2", "--no-progress"])
+    assert code == 1  # the broken bundle failed
+    records = _records_skipping_torn(out)
+    done_first = {r["scene"] for r in first}
+    second = records[len(first):]
+    assert {r["scene"] for r in second} == set(reference) - done_first | {BROKEN}, "finished scenes are not redone"
+    _check_run(records, reference)
+    text = capsys.readouterr()
+    assert "2 already done" in text.err and "unreadable line" in text.err
+    assert "already done (skipped)  2" in text.out
+
+    # Everything ok is skipped; only the failed scene runs again.
+    before = len(_records_skipping_torn(out))
+    assert main(["batch", str(dataset), "--out", str(out), "--workers", "2", "--no-progress"]) == 1
+    again = _records_skipping_torn(out)[before:]
+    assert [r["scene"] for r in again] == [BROKEN]
+
+
+def _records_skipping_torn(path: Path) -> list[dict]:
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return out
+
+
+def test_ray_engine_labels_like_correspond_and_resumes(dataset, reference, ray_instance, tmp_path, capsys):
+    out = tmp_path / "ray.jsonl"
+    args = ["batch", str(dataset), "--out", str(out), "--engine", "ray", "--batch-size", "2", "--no-progress"]
+    assert main(args + ["--limit", "3"]) == 0
+    first = _records(out)
+    assert sorted(r["scene"] for r in first) == ["rocks/field_0", "rocks/field_1", "rocks/field_2"]
+    assert main(args) == 1
+    records = _records(out)
+    assert sorted(r["scene"] for r in records[len(first):]) == ["spheres.zip", BROKEN], "finished scenes are not redone"
+    _check_run(records, reference)
+    assert "3 already done, running 2 on the ray engine" in capsys.readouterr().err
+
+
+def test_ray_engine_without_ray_names_the_extra(dataset, tmp_path):
+    code = (
+        "import sys; sys.modules['ray'] = None\n"
+        "from shadowcorr.cli import main\n"
+        f"sys.exit(main(['batch', {str(dataset)!r}, '--out', {str(tmp_path / 'r.jsonl')!r}, '--engine', 'ray']))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert 'pip install "shadowcorr[ray]"' in proc.stderr
+    assert not (tmp_path / "r.jsonl").exists()
