@@ -17,7 +17,7 @@ from .bundle import SceneBundle, unit_scale
 from .config import ShadowCorrConfig
 from .nn import Model, load_model, run_batched
 from .result import ModelInfo, Result
-from .segments import extract_segments
+from .segments import check_valid_depth, extract_segments
 from .shadows import cast_shadows, segment_shells
 from .voxel_scene import VoxelScene, build_voxel_scene
 
@@ -33,6 +33,7 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
             "the scene has no segments: every mask is empty, or every blob is smaller than "
             f"min_blob_pixels = {config.min_blob_pixels}"
         )
+    depth_warnings = check_valid_depth(segments, bundle.units, config)  # DepthRangeError when nearly all are empty
     timings["segments"] = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
     shells = segment_shells(segments, config)
@@ -43,7 +44,7 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     scene = build_voxel_scene(
         bundle.name, bundle.units, unit_scale(bundle.units, config.units), segments, shells, shadows, config, timings
     )
-    scene.warnings[:0] = list(bundle.warnings)
+    scene.warnings[:0] = list(bundle.warnings) + depth_warnings
     return scene
 
 
