@@ -186,7 +186,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app, on_error=lambda code: metrics.errors.labels(code).inc())
     token = settings.auth_token.get_secret_value() if settings.auth_token is not None else None
-    app.add_middleware(AccessMiddleware, metrics=metrics, token=token)
+    app.add_middleware(AccessMiddleware, metrics=metrics, token=token, max_header_bytes=settings.max_header_bytes)
 
     @app.post(
         "/correspond",

@@ -113,8 +113,8 @@ class _GuardedH11Protocol(H11Protocol):
         self._disarm_header_timer()
         if status == 431:
             self._close_with(431, "headers_too_large",
-                             f"the request line and headers are larger than {self.max_header_bytes} bytes "
-                             f"(a query string counts too)", "headers")
+                             f"the request line and headers are larger than max_header_bytes = {self.max_header_bytes} "
+                             "bytes (a query string counts too)", "headers")
         else:
             self._close_with(400, "bad_request", f"invalid HTTP request: {detail}", "headers")
 
