@@ -125,8 +125,8 @@ class _GuardedH11Protocol(H11Protocol):
             "problems": [],
         }).encode()
         await send({"type": "http.response.start", "status": 503, "headers": [
-            (b"content-type", b"application/json"), (b"retry-after", str(self.retry_after_s).encode()),
-            (b"connection", b"close")]})
+            (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+            (b"retry-after", str(self.retry_after_s).encode()), (b"connection", b"close")]})
         await send({"type": "http.response.body", "body": body})
 
 

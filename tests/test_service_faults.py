@@ -30,7 +30,7 @@ from .paths import SAMPLE_DIR
 MiB = 1024 * 1024
 HEADER_TIMEOUT_S = 2.0
 BODY_GRACE_S = 3.0
-MIN_RATE = 1000
+MIN_RATE = 64 * 1024
 BUDGET = 48 * MiB
 SPOOL = 64 * 1024
 MAX_HEADER = 16 * 1024
@@ -249,16 +249,16 @@ def test_stalled_uploads_hold_no_admission_slot(server, tiny):
 
 def test_large_bodies_are_spooled_and_budgeted(server, spool_dir):
     # an upload over spool_bytes goes to a temporary file while it arrives ...
-    first = _stalled_upload(server, 40 * MiB, sent=b"\0" * (4 * SPOOL))
+    first = _stalled_upload(server, 30 * MiB, sent=b"\0" * (4 * SPOOL))
     try:
         deadline = time.monotonic() + 10
         while not list(spool_dir.glob("shadowcorr-upload-*")) and time.monotonic() < deadline:
             time.sleep(0.05)
         spooled = list(spool_dir.glob("shadowcorr-upload-*"))
         assert spooled and spooled[0].stat().st_size >= 4 * SPOOL
-        # ... and holds 40 MiB of the 48 MiB budget: a second 16 MiB upload is refused
+        # ... and holds 30 MiB of the 48 MiB budget: a second 20 MiB upload is refused
         status, headers, body = _exchange(server, b"POST /correspond HTTP/1.1\r\nHost: x\r\nContent-Type: "
-                                          b"application/zip\r\nContent-Length: %d\r\n\r\n" % (16 * MiB))
+                                          b"application/zip\r\nContent-Length: %d\r\n\r\n" % (20 * MiB))
         assert status == 503 and _is_error(body, "overloaded") and headers["retry-after"] == "7", body
         assert "max_upload_bytes_in_flight" in body["message"]
         status, _, body = _read_response(first)  # then it stalls: 408, and its file is deleted
