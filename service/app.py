@@ -94,7 +94,7 @@ _BODY_SCHEMA = {
                         "type": "object",
                         "title": "archive",
                         "required": ["bundle"],
-                        "properties": {"bundle": {**_BINARY, "description": "a bundle as .zip or .tar(.gz)"}},
+                        "properties": {"bundle": {**_BINARY, "minLength": 1, "description": "a bundle as .zip or .tar(.gz)"}},
                         "additionalProperties": False,
                     },
                     {
@@ -102,7 +102,7 @@ _BODY_SCHEMA = {
                         "title": "parts",
                         "required": ["manifest"],
                         "properties": {
-                            "manifest": {"type": "string", "description": "manifest.json text"},
+                            "manifest": {"type": "string", "minLength": 1, "description": "manifest.json text"},
                             "files": {"type": "array", "items": _BINARY},
                         },
                         "additionalProperties": False,
