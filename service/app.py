@@ -71,6 +71,9 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
     413: {"model": ErrorBody, "description": "over a size or cost limit: max_body_bytes, max_segments, "
           "max_scene_points (payload_too_large, too_many_segments, too_many_points, too_large)"},
     415: {"model": ErrorBody, "description": "unsupported Content-Type (unsupported_media_type)"},
+    429: {"model": ErrorBody, "description": "this client already has max_requests_per_client requests in flight "
+          "(too_many_requests); see Retry-After",
+          "headers": {"Retry-After": {"description": "seconds to wait before retrying", "schema": {"type": "integer"}}}},
     422: {"model": ErrorBody, "description": "invalid bundle, query or scene; 'problems' name each one (invalid_bundle, "
           "invalid_options, invalid_request, no_segments, no_valid_depth, unprocessable_scene)"},
     431: {"model": ErrorBody, "description": "request line and headers over max_header_bytes (headers_too_large)"},
@@ -218,7 +221,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             started = time.monotonic()
             # The whole body first: a slow or stalled upload holds no admission slot.
             upload, reserved = await runtime.receive(request)
-            ticket = runtime.admit(upload, reserved, started)
+            client = request.client.host if request.client else "unknown"
+            ticket = runtime.admit(upload, reserved, started, client)
             try:
                 work = _unless(runtime.correspond(ticket, content_type, config, bool(params["metrics"])),
                                _disconnected(request))

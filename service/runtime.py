@@ -79,6 +79,7 @@ class Runtime:
         )
         self._startup_task: asyncio.Task | None = None
         self.budget = ByteBudget(settings.max_upload_bytes_in_flight)
+        self.per_client: dict[str, int] = {}  # admitted requests by client address
         self.upload_rules = UploadRules.from_settings(settings)
         self.shutdown_deadline: float | None = None  # time.monotonic() by which requests must be answered
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -190,6 +191,9 @@ class Runtime:
                 "max_views": s.max_views,
                 "max_pixels_per_view": s.max_pixels_per_view,
                 "max_segments": s.max_segments,
+                "max_scene_points": s.max_scene_points,
+                "max_requests_per_client": s.max_requests_per_client,
+                "max_upload_bytes_in_flight": s.max_upload_bytes_in_flight,
                 "queue_size": s.queue_size,
                 "request_timeout_s": s.request_timeout_s,
             },
@@ -246,14 +250,18 @@ class Runtime:
             self.metrics.stage_latency.labels("read_body").observe(time.perf_counter() - t0)
             self.metrics.upload_bytes.set(self.budget.used)
 
-    def admit(self, upload: Upload, reserved: int, started: float) -> "Ticket":
-        """Take an admission slot for a received body, or refuse it (503) and drop the body.
+    def admit(self, upload: Upload, reserved: int, started: float, client: str) -> "Ticket":
+        """Take an admission slot for a received body, or refuse it and drop the body.
 
-        From here the ticket owns the upload and its share of the byte budget, until
-        :meth:`release` *and* the end of every worker job it started.
+        503 when ``queue_size`` requests are in flight; 429 when this client (by address)
+        already holds ``max_requests_per_client`` of them, so that one busy client cannot
+        take every slot from the others.  From here the ticket owns the upload and its
+        share of the byte budget, until :meth:`release` *and* the end of every worker job
+        it started.
         """
-        ticket = Ticket(upload, reserved, started)
+        ticket = Ticket(upload, reserved, started, client)
         ticket.read_ms = (time.monotonic() - started) * 1e3
+        retry = {"Retry-After": str(self.settings.retry_after_s)}
         try:
             self.check_accepting()
             if self.in_flight >= self.settings.queue_size:
@@ -262,13 +270,23 @@ class Runtime:
                     "overloaded",
                     f"{self.in_flight} requests in flight, the limit is queue_size = {self.settings.queue_size}; "
                     "retry later",
-                    headers={"Retry-After": str(self.settings.retry_after_s)},
+                    headers=retry,
+                )
+            held = self.per_client.get(client, 0)
+            if held >= self.settings.max_requests_per_client:
+                raise ApiError(
+                    429,
+                    "too_many_requests",
+                    f"this client already has {held} requests in flight, the limit is max_requests_per_client = "
+                    f"{self.settings.max_requests_per_client}; retry when one has finished",
+                    headers=retry,
                 )
         except ApiError:
             self._drop_upload(ticket)
             raise
         self.in_flight += 1
         self.preparing += 1
+        self.per_client[client] = self.per_client.get(client, 0) + 1
         ticket.admitted = True
         self.metrics.queue_depth.set(self.in_flight)
         return ticket
@@ -293,6 +311,9 @@ class Runtime:
         if ticket.ended and ticket.jobs == 0 and ticket.admitted:
             ticket.admitted = False
             self.in_flight -= 1
+            left = self.per_client.pop(ticket.client) - 1
+            if left:
+                self.per_client[ticket.client] = left
             self.metrics.queue_depth.set(self.in_flight)
             self._drop_upload(ticket)
 
@@ -356,14 +377,15 @@ class Runtime:
 class Ticket:
     """One admitted request's place in the bookkeeping: its upload, budget share and running jobs."""
 
-    __slots__ = ("upstream", "upload", "reserved", "started", "read_ms", "jobs", "ended", "admitted")
+    __slots__ = ("upstream", "upload", "reserved", "started", "read_ms", "client", "jobs", "ended", "admitted")
 
-    def __init__(self, upload: Upload, reserved: int, started: float) -> None:
+    def __init__(self, upload: Upload, reserved: int, started: float, client: str) -> None:
         self.upstream = True  # may still reach the batcher
         self.upload = upload
         self.reserved = reserved  # bytes of the upload budget held
         self.started = started  # time.monotonic() when the body started to arrive
         self.read_ms = 0.0  # how long the body took to arrive
+        self.client = client  # the client's address, for the per-client limit
         self.jobs = 0  # worker jobs started and not yet stopped
         self.ended = False  # the request has been answered (or abandoned)
         self.admitted = False  # holds an admission slot

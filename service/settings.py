@@ -39,6 +39,9 @@ class ServiceSettings(BaseSettings):
 
     # --- admission and time limits
     queue_size: int = Field(32, ge=1, description="requests admitted at once (uploading, queued or running); more get 503")
+    max_requests_per_client: int = Field(
+        16, ge=1, description="requests one client address may have admitted at once; more get 429"
+    )
     request_timeout_s: float = Field(120.0, gt=0, description="a request not finished after this gets 504")
     retry_after_s: int = Field(2, ge=0, description="Retry-After sent with 503 responses")
     graceful_shutdown_s: float = Field(30.0, ge=0, description="on SIGTERM, how long in-flight requests may finish")

@@ -51,6 +51,7 @@ def server(spool_dir):
         [
             "--workers", "1",
             "--queue-size", "4",
+            "--max-requests-per-client", "1",
             "--max-wait-ms", "0",
             "--header-timeout-s", str(HEADER_TIMEOUT_S),
             "--body-grace-s", str(BODY_GRACE_S),
@@ -175,7 +176,7 @@ def test_openapi_documents_the_limits(server):
     form = post["requestBody"]["content"]["multipart/form-data"]["schema"]
     assert [s["required"] for s in form["oneOf"]] == [["bundle"], ["manifest"]]
     assert all(s["additionalProperties"] is False for s in form["oneOf"])
-    assert {"400", "401", "408", "413", "415", "422", "431", "500", "503", "504"} <= set(post["responses"])
+    assert {"400", "401", "408", "413", "415", "422", "429", "431", "500", "503", "504"} <= set(post["responses"])
     assert "Retry-After" in post["responses"]["503"]["headers"]
     # refused up front (before a byte of the body is read), as the schema says
     for value, needle in (("inf", "finite"), ("nan", "finite"), ("-inf", "finite"), ("0", "greater than 0")):
@@ -338,8 +339,8 @@ def test_cancelled_job_frees_its_worker_and_holds_its_slot_until_stopped(server,
         time.sleep(0.2)
 
 
-def test_shutdown_answers_json_503_to_what_cannot_finish(server, slow_parts):
-    """Last test of the module: SIGTERM with a long request running and an upload stalled."""
+def test_shutdown_answers_json_503_to_what_cannot_finish(server, slow_parts, tiny):
+    """Last test of the module: SIGTERM with a long request running and an upload stalled (and per-client fairness)."""
     while _health(server)["workers"]["ready"] < 1:
         time.sleep(0.2)
     (worker,) = server.worker_processes()
@@ -353,6 +354,11 @@ def test_shutdown_answers_json_503_to_what_cannot_finish(server, slow_parts):
     t.start()
     while sum(worker.cpu_times()[:2]) - base < 0.1 and t.is_alive():
         time.sleep(0.02)
+    # one client may hold one of the 4 slots here (max_requests_per_client 1): a second request gets 429
+    zipped, _, _ = tiny
+    busy = httpx.post(server.url + "/correspond", files={"bundle": ("s.zip", zipped)}, timeout=60)
+    assert busy.status_code == 429 and busy.headers["retry-after"] == "7", busy.text
+    assert busy.json()["error"] == "too_many_requests" and "max_requests_per_client" in busy.json()["message"]
     # an upload that trickles just fast enough to stay open past the grace period
     upload = _stalled_upload(server, 10_000, sent=b"\0" * 4000)
     time.sleep(0.1)
