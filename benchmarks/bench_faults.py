@@ -9,7 +9,7 @@ shutdown grace) and reproduces, printing what the server held:
    closed, and with what;
 2. **cheap uploads that cost a lot**: a 1,900-blob mask (every blob ~60 pixels with
    depth) in one view; the status, the time to answer, and the error code, at the
-   default limits and at ``max_segments`` 500;
+   default limits (``max_segments`` 500) and at the former default ``max_segments`` 2000;
 3. (run last) **shutdown**: SIGTERM while a long request runs; what its client gets and when;
 4. **memory**: eight concurrent 120 MiB uploads; resident memory of the main process
    (psutil, sampled every 20 ms) before, at peak and after;
@@ -205,11 +205,11 @@ def confetti_scene(n_blobs: int = 1900) -> bytes:
     return zip_files({"manifest.json": json.dumps(manifest).encode(), **files})
 
 
-def bench_costly(server: ServerProcess, small_limit_server: ServerProcess | None) -> None:
+def bench_costly(server: ServerProcess, other_limit_server: ServerProcess | None) -> None:
     print("\n[2] a cheap upload that costs a lot: 1,900 blobs of 64 pixels in one view")
     body = confetti_scene()
     print(f"  upload size {len(body) / 1e6:.2f} MB")
-    for label, srv in (("default limits", server), ("max_segments 500", small_limit_server)):
+    for label, srv in (("default limits", server), ("max_segments 2000 (former default)", other_limit_server)):
         if srv is None:
             continue
         t0 = time.perf_counter()
@@ -313,15 +313,15 @@ def main() -> None:
     grace = 2.0
     tiny = tiny_scene()
     server = ServerProcess(["--workers", str(args.workers), "--graceful-shutdown-s", str(grace)]).start()
-    small = None
+    former = None
     try:
         print(f"server pid {server.pid} at {server.url}, {args.workers} workers, default limits; "
               f"main process RSS {rss(server.pid) / MiB:.0f} MiB")
         if "stalled" not in skip:
             bench_stalled(server, tiny[0], args.requests)
         if "costly" not in skip:
-            small = ServerProcess(["--workers", "1", "--max-segments", "500"]).start()
-            bench_costly(server, small)
+            former = ServerProcess(["--workers", "1", "--max-segments", "2000"]).start()
+            bench_costly(server, former)
         if "memory" not in skip:
             bench_memory(server, args.uploads, args.upload_mib * MiB)
         if "archive" not in skip:
@@ -329,8 +329,8 @@ def main() -> None:
         if "shutdown" not in skip:
             bench_shutdown(server, grace)
     finally:
-        if small is not None:
-            small.stop()
+        if former is not None:
+            former.stop()
         server.stop()
 
 
