@@ -21,7 +21,7 @@ CONFIG = Path(__file__).with_name("schemathesis.toml")
 MAX_TIME_S = 40
 
 
-def test_schemathesis_finds_no_failure():
+def test_schemathesis_finds_no_failure(tmp_path):
     st = shutil.which("st", path=str(Path(sys.executable).parent)) or shutil.which("st")
     if st is None:
         pytest.skip("schemathesis is not installed (dev extra)")
@@ -30,6 +30,7 @@ def test_schemathesis_finds_no_failure():
             [st, "--config-file", str(CONFIG), "run", server.url + "/openapi.json", "--checks", "all",
              "--workers", "1", "--max-time", str(MAX_TIME_S), "--no-color"],
             capture_output=True, text=True, timeout=MAX_TIME_S + 240,
+            cwd=tmp_path,  # schemathesis keeps a cache in its working directory
         )
         log = server.log_tail(400)
     report = run.stdout[-8000:] + run.stderr[-2000:]
