@@ -16,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import time
 from contextlib import asynccontextmanager
-from typing import Annotated, Any, AsyncIterator, Literal, Optional
+from typing import Annotated, Any, AsyncIterator, Literal
 
 from fastapi import FastAPI, Query, Request
 from fastapi.responses import JSONResponse, Response
@@ -27,7 +27,6 @@ from shadowcorr.config import METHODS, REQUEST_OPTIONS, ShadowCorrConfig
 from shadowcorr.result import Result
 
 from .errors import ApiError, ErrorBody, install_error_handlers, problems_from_pydantic
-from .limits import read_body
 from .metrics import CONTENT_TYPE_LATEST, ServiceMetrics
 from .middleware import AccessMiddleware
 from .multipart import BodyError, content_kind
@@ -40,9 +39,11 @@ __all__ = ["create_app", "CorrespondQuery"]
 def _query_model() -> type[BaseModel]:
     """Query parameters of /correspond: ``method``, ``metrics`` and the library's REQUEST_OPTIONS.
 
-    Built from ``ShadowCorrConfig``'s own fields so the service never drifts from the
-    library: a new request option appears here (and in OpenAPI) without service edits.
-    Values are checked by ``ShadowCorrConfig.with_options``; unknown names are refused.
+    Built from ``ShadowCorrConfig``'s own fields, with their defaults and constraints
+    (``bandwidth > 0`` becomes ``exclusiveMinimum: 0`` in OpenAPI), so the service never
+    drifts from the library: a new request option appears here without service edits.
+    Numbers must be finite (``bandwidth=inf`` or ``nan`` is refused before any work);
+    unknown names are refused.
     """
     fields: dict[str, Any] = {
         "method": (
@@ -54,70 +55,114 @@ def _query_model() -> type[BaseModel]:
     }
     for name in REQUEST_OPTIONS:
         f = ShadowCorrConfig.model_fields[name]
-        desc = f"{f.description or name} (default {f.default!r})"
-        fields[name] = (Optional[f.annotation], Field(None, description=desc))  # type: ignore[name-defined]
+        finite = {"allow_inf_nan": False} if f.annotation is float else {}
+        annotation = Annotated[(f.annotation, *f.metadata)] if f.metadata else f.annotation
+        fields[name] = (annotation, Field(f.default, description=f.description or name, **finite))
     return create_model("CorrespondQuery", __config__=ConfigDict(extra="forbid"), **fields)
 
 
 CorrespondQuery = _query_model()
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
-    400: {"model": ErrorBody, "description": "malformed multipart body"},
-    401: {"model": ErrorBody, "description": "bearer token missing or wrong (when the service has one)"},
-    413: {"model": ErrorBody, "description": "body, scene or segment count over a limit"},
-    415: {"model": ErrorBody, "description": "unsupported Content-Type"},
-    422: {"model": ErrorBody, "description": "invalid bundle or options; 'problems' name each one"},
-    500: {"model": ErrorBody, "description": "internal error, or the worker process died (retry is safe)"},
-    503: {"model": ErrorBody, "description": "not ready yet, or too many requests in flight (see Retry-After)"},
-    504: {"model": ErrorBody, "description": "the request took longer than the request timeout"},
+    400: {"model": ErrorBody, "description": "malformed body: bad multipart form, empty body, client gone mid-upload "
+          "(bad_multipart, empty_body, client_disconnected, bad_request)"},
+    401: {"model": ErrorBody, "description": "bearer token missing or wrong, when the service has one (unauthorized)"},
+    408: {"model": ErrorBody, "description": "headers or body too slow: header_timeout_s, body_timeout_s, "
+          "min_upload_bytes_per_s (header_timeout, body_timeout)"},
+    413: {"model": ErrorBody, "description": "over a size or cost limit: max_body_bytes, max_segments, "
+          "max_scene_points (payload_too_large, too_many_segments, too_many_points, too_large)"},
+    415: {"model": ErrorBody, "description": "unsupported Content-Type (unsupported_media_type)"},
+    429: {"model": ErrorBody, "description": "this client already has max_requests_per_client requests in flight "
+          "(too_many_requests); see Retry-After",
+          "headers": {"Retry-After": {"description": "seconds to wait before retrying", "schema": {"type": "integer"}}}},
+    422: {"model": ErrorBody, "description": "invalid bundle, query or scene; 'problems' name each one (invalid_bundle, "
+          "invalid_options, invalid_request, no_segments, no_valid_depth, unprocessable_scene)"},
+    431: {"model": ErrorBody, "description": "request line and headers over max_header_bytes (headers_too_large)"},
+    500: {"model": ErrorBody, "description": "internal error, or the worker process died (worker_crashed: retry is safe)"},
+    503: {"model": ErrorBody, "description": "not ready, shutting down, too many requests / upload bytes / connections "
+          "in flight (not_ready, shutting_down, overloaded, too_many_connections); see Retry-After",
+          "headers": {"Retry-After": {"description": "seconds to wait before retrying", "schema": {"type": "integer"}}}},
+    504: {"model": ErrorBody, "description": "the request took longer than request_timeout_s (timeout)"},
 }
 
+_BINARY = {"type": "string", "format": "binary"}
 _BODY_SCHEMA = {
     "required": True,
     "content": {
         "multipart/form-data": {
             "schema": {
-                "type": "object",
-                "description": "either 'bundle', or 'manifest' plus one file part per file the manifest names "
-                "(the part's filename is the path in the manifest)",
-                "properties": {
-                    "bundle": {"type": "string", "format": "binary", "description": "a bundle as .zip or .tar(.gz)"},
-                    "manifest": {"type": "string", "description": "manifest.json text"},
-                    "files": {"type": "array", "items": {"type": "string", "format": "binary"}},
-                },
+                "description": "either a 'bundle' archive part, or a 'manifest' part plus one file part per file the "
+                "manifest names (the part's filename is the path in the manifest); never both",
+                "oneOf": [
+                    {
+                        "type": "object",
+                        "title": "archive",
+                        "required": ["bundle"],
+                        "properties": {"bundle": {**_BINARY, "minLength": 1, "description": "a bundle as .zip or .tar(.gz)"}},
+                        "additionalProperties": False,
+                    },
+                    {
+                        "type": "object",
+                        "title": "parts",
+                        "required": ["manifest"],
+                        "properties": {
+                            "manifest": {"type": "string", "minLength": 1, "description": "manifest.json text"},
+                            "files": {"type": "array", "items": _BINARY},
+                        },
+                        "additionalProperties": False,
+                    },
+                ],
             }
         },
-        **{t: {"schema": {"type": "string", "format": "binary"}} for t in ("application/zip", "application/x-tar")},
+        **{t: {"schema": _BINARY} for t in ("application/zip", "application/x-tar")},
     },
 }
 
 
-async def _unless_disconnected(request: Request, work: Any) -> Any:
-    """Await ``work``, but cancel it if the client disconnects first (nobody would read the answer).
+async def _unless(work: Any, watcher: Any) -> Any:
+    """Await ``work``; if ``watcher`` ends first, cancel ``work`` and raise what ``watcher`` raised.
 
-    Once the body has been read, the next ASGI message can only be ``http.disconnect``.
+    Watchers wait for something that makes the answer pointless or impossible (the
+    client left, the shutdown deadline passed) and then raise the :class:`ApiError` to
+    answer with.
     """
-
-    async def disconnected() -> None:
-        while (await request.receive())["type"] != "http.disconnect":
-            pass
-
     task = asyncio.ensure_future(work)
-    watcher = asyncio.ensure_future(disconnected())
+    guard = asyncio.ensure_future(watcher)
     try:
-        done, _ = await asyncio.wait({task, watcher}, return_when=asyncio.FIRST_COMPLETED)
-    except asyncio.CancelledError:  # timeout or shutdown: stop both
+        done, _ = await asyncio.wait({task, guard}, return_when=asyncio.FIRST_COMPLETED)
+    except asyncio.CancelledError:  # uvicorn gave up on the request: stop both
         task.cancel()
-        watcher.cancel()
-        await asyncio.gather(task, watcher, return_exceptions=True)
+        guard.cancel()
+        await asyncio.gather(task, guard, return_exceptions=True)
         raise
     if task in done:
-        watcher.cancel()
-        await asyncio.gather(watcher, return_exceptions=True)
+        guard.cancel()
+        await asyncio.gather(guard, return_exceptions=True)
         return task.result()
     task.cancel()
     await asyncio.gather(task, return_exceptions=True)
+    guard.result()  # raises the watcher's error
+    raise RuntimeError("a watcher returned without an error")  # pragma: no cover - watchers always raise
+
+
+async def _disconnected(request: Request) -> None:
+    """Raise once the client disconnects (after the body, the next ASGI message can only be that)."""
+    while (await request.receive())["type"] != "http.disconnect":
+        pass
     raise ApiError(400, "client_disconnected", "the client disconnected before the answer was ready")
+
+
+async def _shutdown_deadline(runtime: Runtime) -> None:
+    """Raise 503 at the shutdown deadline: an answer the client can act on, instead of a dropped request."""
+    await runtime.until_shutdown_deadline()
+    grace = runtime.settings.graceful_shutdown_s
+    raise ApiError(
+        503,
+        "shutting_down",
+        f"the service is shutting down and this request did not finish within graceful_shutdown_s = {grace:g} s; "
+        "retry it (another instance may take it)",
+        headers={"Retry-After": str(runtime.settings.retry_after_s), "Connection": "close"},
+    )
 
 
 def create_app(settings: ServiceSettings | None = None) -> FastAPI:
@@ -145,7 +190,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app, on_error=lambda code: metrics.errors.labels(code).inc())
     token = settings.auth_token.get_secret_value() if settings.auth_token is not None else None
-    app.add_middleware(AccessMiddleware, metrics=metrics, token=token)
+    app.add_middleware(AccessMiddleware, metrics=metrics, token=token, max_header_bytes=settings.max_header_bytes)
 
     @app.post(
         "/correspond",
@@ -158,7 +203,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         request: Request, query: Annotated[CorrespondQuery, Query()]  # type: ignore[valid-type]
     ) -> Response:
         params = query.model_dump()  # type: ignore[attr-defined]
-        options = {k: params[k] for k in REQUEST_OPTIONS if params.get(k) is not None}
+        options = {k: params[k] for k in REQUEST_OPTIONS}
         try:
             config = base_config.with_options(**options, method=params["method"])
         except ValidationError as e:
@@ -171,25 +216,27 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         except BodyError as e:
             code = "unsupported_media_type" if e.status == 415 else "bad_multipart"
             raise ApiError(e.status, code, str(e), [{"loc": e.loc, "msg": str(e)}]) from None
+        runtime.check_accepting()
 
         async def run() -> bytes:
-            t0 = time.perf_counter()
-            body = await read_body(request, settings.max_body_bytes)
-            metrics.stage_latency.labels("read_body").observe(time.perf_counter() - t0)
-            work = runtime.correspond(ticket, body, content_type, config, bool(params["metrics"]))
-            del body  # the pipeline owns the upload now and drops it once it is decoded
-            return await _unless_disconnected(request, work)
+            started = time.monotonic()
+            # The whole body first: a slow or stalled upload holds no admission slot.
+            upload, reserved = await runtime.receive(request)
+            client = request.client.host if request.client else "unknown"
+            ticket = runtime.admit(upload, reserved, started, client)
+            try:
+                work = _unless(runtime.correspond(ticket, content_type, config, bool(params["metrics"])),
+                               _disconnected(request))
+                # wait_for, not asyncio.timeout: the project supports Python 3.10.
+                return await asyncio.wait_for(work, settings.request_timeout_s)
+            except asyncio.TimeoutError:
+                raise ApiError(
+                    504, "timeout", f"the request did not finish within request_timeout_s = {settings.request_timeout_s:g} s"
+                ) from None
+            finally:
+                runtime.release(ticket)  # the slot stays taken until its worker job has really stopped
 
-        ticket = runtime.admit()
-        try:
-            # wait_for, not asyncio.timeout: the project supports Python 3.10.
-            out = await asyncio.wait_for(run(), settings.request_timeout_s)
-        except asyncio.TimeoutError:
-            raise ApiError(
-                504, "timeout", f"the request did not finish within {settings.request_timeout_s:g} s"
-            ) from None
-        finally:
-            runtime.release(ticket)
+        out = await _unless(run(), _shutdown_deadline(runtime))
         return Response(out, media_type="application/json")
 
     @app.get("/health", summary="Liveness and readiness (no auth)")

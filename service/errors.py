@@ -159,7 +159,10 @@ def install_error_handlers(app: Any, on_error: Callable[[str], None] | None = No
 
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
         problems = problems_from_pydantic(exc.errors())
-        return respond(422, "invalid_request", _summary(problems, "invalid request parameters"), problems)
+        # Query parameters are the method's options (bandwidth, ...): the code clients already know for them.
+        options = bool(problems) and all(p["loc"].startswith("query.") for p in problems)
+        code, what = ("invalid_options", "invalid options") if options else ("invalid_request", "invalid request parameters")
+        return respond(422, code, _summary(problems, what), problems)
 
     async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = _STATUS_CODES.get(exc.status_code, "http_error")

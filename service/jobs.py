@@ -20,6 +20,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -28,11 +29,12 @@ from shadowcorr.errors import BundleError
 from shadowcorr.io import load_bundle, load_bundle_from_parts
 from shadowcorr.pipeline import assign, baseline_embeddings, prepare
 from shadowcorr.result import ModelInfo
+from shadowcorr.segments import DepthRangeError
 from shadowcorr.voxel_scene import VoxelScene
 
 from .errors import JobError
-from .limits import RequestLimits, check_instances, check_segment_count
-from .multipart import BodyError, parse_body
+from .limits import RequestLimits, Upload, check_instances, check_segment_count
+from .multipart import BodyError, content_kind, parse_body
 from .synthetic import synthetic_bundle
 
 __all__ = [
@@ -101,12 +103,20 @@ def hello() -> int:
 
 
 # --------------------------------------------------------------------------- jobs
-def _load(body: bytes, content_type: str, limits: RequestLimits):
+def _load(upload: Upload, content_type: str, limits: RequestLimits):
     try:
-        parsed = parse_body(body, content_type, max_files=limits.bundle.max_files)
+        if content_kind(content_type) == "archive" and upload.path is not None:
+            # A large bare archive is read from its file: only the members it needs are
+            # ever decompressed, and the archive itself never has to be in memory.
+            return load_bundle(Path(upload.path), limits=limits.bundle)
+        parsed = parse_body(upload.read(), content_type, max_files=limits.bundle.max_files)
     except BodyError as e:
         code = "unsupported_media_type" if e.status == 415 else "bad_multipart"
         raise JobError(e.status, code, str(e), [{"loc": e.loc, "msg": str(e)}]) from None
+    except BundleError as e:
+        raise JobError(422, "invalid_bundle", str(e), e.to_dicts()) from None
+    except FileNotFoundError:  # the request ended (and its upload was deleted) before the job started
+        raise JobError(400, "client_disconnected", "the request ended before its upload was read") from None
     try:
         if parsed.archive is not None:
             return load_bundle(parsed.archive, limits=limits.bundle)
@@ -125,6 +135,8 @@ def _guarded(what: str, fn, *args):
         return fn(*args)
     except JobError:
         raise
+    except DepthRangeError as e:  # nearly every segment lost its depth: wrong units or max_depth
+        raise JobError(422, "no_valid_depth", str(e), [{"loc": "manifest.units", "msg": str(e)}]) from None
     except MemoryError:
         raise JobError(413, "too_large", f"{what}: the scene needs more memory than this service has") from None
     except ValueError as e:  # the engine's way of saying "this input cannot be processed"
@@ -134,11 +146,10 @@ def _guarded(what: str, fn, *args):
         raise JobError(500, "internal_error", f"{what} failed ({type(e).__name__}); see the server log") from None
 
 
-def _decode_and_prepare(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits) -> Prepared:
+def _decode_and_prepare(upload: Upload, content_type: str, config: ShadowCorrConfig, limits: RequestLimits) -> Prepared:
     t0 = time.perf_counter()
-    bundle = _load(body, content_type, limits)
-    del body
-    check_instances(bundle, limits.max_segments, config.min_blob_pixels)
+    bundle = _load(upload, content_type, limits)
+    check_instances(bundle, limits, config.min_blob_pixels)
     t1 = time.perf_counter()
     scene = prepare(bundle, config)
     check_segment_count(scene.num_segments, limits.max_segments)
@@ -153,17 +164,22 @@ def _assign_scene(
     model: ModelInfo | None,
     metrics: bool,
     extra_timings: dict[str, float],
+    started: float | None,
 ) -> bytes:
     result = assign(scene, embeddings, config, model=model, metrics=metrics)
     result.timings_ms.update({k: round(v, 3) for k, v in extra_timings.items()})
+    if started is not None:  # the whole request as the service saw it: body, queues, decode, batch, network
+        # time.monotonic is CLOCK_MONOTONIC, one clock for every process on the machine.
+        result.timings_ms["total"] = round((time.monotonic() - started) * 1e3, 3)
     return result.model_dump_json().encode()
 
 
-def _baseline(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool) -> bytes:
+def _baseline(upload: Upload, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool,
+              extra_timings: dict[str, float], started: float | None) -> bytes:
     """A method without a network ('projection', 'meanshift'): no batcher; one job does it all."""
-    prepared = _decode_and_prepare(body, content_type, config, limits)
+    prepared = _decode_and_prepare(upload, content_type, config, limits)
     return _assign_scene(prepared.scene, baseline_embeddings(prepared.scene), config, None, metrics,
-                         {"decode": prepared.decode_ms})
+                         {**extra_timings, "decode": prepared.decode_ms}, started)
 
 
 def _warmup_scene() -> VoxelScene:
@@ -171,9 +187,9 @@ def _warmup_scene() -> VoxelScene:
     return prepare(synthetic_bundle(name="warmup"))
 
 
-def decode_and_prepare(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits) -> Prepared:
+def decode_and_prepare(upload: Upload, content_type: str, config: ShadowCorrConfig, limits: RequestLimits) -> Prepared:
     """Parse the upload, load and check the bundle, run ``prepare``."""
-    return _guarded("decoding and preparing the scene", _decode_and_prepare, body, content_type, config, limits)
+    return _guarded("decoding and preparing the scene", _decode_and_prepare, upload, content_type, config, limits)
 
 
 def assign_scene(
@@ -183,14 +199,22 @@ def assign_scene(
     model: ModelInfo | None,
     metrics: bool,
     extra_timings: dict[str, float],
+    started: float | None = None,
 ) -> bytes:
-    """Cluster the embeddings and label the segments; returns the Result JSON bytes."""
-    return _guarded("assigning objects", _assign_scene, scene, embeddings, config, model, metrics, extra_timings)
+    """Cluster the embeddings and label the segments; returns the Result JSON bytes.
+
+    ``started`` (``time.monotonic()`` when the request began) makes ``timings_ms.total``
+    the request's wall time in the service.
+    """
+    return _guarded("assigning objects", _assign_scene, scene, embeddings, config, model, metrics, extra_timings,
+                    started)
 
 
-def baseline(body: bytes, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool) -> bytes:
+def baseline(upload: Upload, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool,
+             extra_timings: dict[str, float], started: float | None = None) -> bytes:
     """Decode, prepare and assign with a method without a network; returns the Result JSON bytes."""
-    return _guarded(f"method {config.method!r}", _baseline, body, content_type, config, limits, metrics)
+    return _guarded(f"method {config.method!r}", _baseline, upload, content_type, config, limits, metrics,
+                    extra_timings, started)
 
 
 def warmup_scene() -> VoxelScene:

@@ -1,22 +1,30 @@
 """Input limits: request body size (main process) and scene size (worker processes).
 
-The body limit is enforced twice: a declared ``Content-Length`` over the limit is
-refused before a byte is read, and the bytes actually received are counted while
-streaming, because a chunked body declares no length and a client may lie.
+Bodies are received completely, before a request takes an admission slot, into
+memory when small and a temporary file otherwise (``receive_body``), under a size
+limit, a byte budget over all bodies in flight, a deadline and a minimum rate.  The
+size limit is enforced twice: a declared ``Content-Length`` over the limit is refused
+before a byte is read, and the bytes actually received are counted while streaming,
+because a chunked body declares no length and a client may lie.
 
 Bundle limits (views, pixels per view, files, decompressed bytes) are applied by the
-library's loader through :class:`shadowcorr.io.BundleLimits`.  The segment limit is
-checked here, before and after ``prepare``: before, cheaply, on the number of
-instance ids in the masks (a mask with more instances than the limit is refused
+library's loader through :class:`shadowcorr.io.BundleLimits`.  The cost limits are
+checked here: before ``prepare``, cheaply, on the number of instance ids and of
+instance pixels with valid depth in the masks (a scene over a limit is refused
 without cutting it into blobs); after, exactly, on the segments ``prepare`` found.
 """
 
 from __future__ import annotations
 
+import asyncio
+import os
+import tempfile
+import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from starlette.requests import ClientDisconnect, Request
+from starlette.requests import Request
 
 from shadowcorr.bundle import SceneBundle
 from shadowcorr.io import BundleLimits
@@ -24,7 +32,7 @@ from shadowcorr.io import BundleLimits
 from .errors import ApiError, JobError
 from .settings import ServiceSettings
 
-__all__ = ["RequestLimits", "read_body", "check_instances", "check_segment_count"]
+__all__ = ["RequestLimits", "ByteBudget", "Upload", "UploadRules", "receive_body", "check_instances", "check_segment_count"]
 
 # Masks with ids below this are counted with bincount (fast); larger ids need np.unique.
 _BINCOUNT_MAX_ID = 1 << 20
@@ -36,6 +44,7 @@ class RequestLimits:
 
     bundle: BundleLimits
     max_segments: int
+    max_scene_points: int
 
     @classmethod
     def from_settings(cls, s: ServiceSettings) -> "RequestLimits":
@@ -48,64 +57,218 @@ class RequestLimits:
                 max_segments=s.max_segments,
             ),
             max_segments=s.max_segments,
+            max_scene_points=s.max_scene_points,
         )
 
 
-async def read_body(request: Request, max_bytes: int) -> bytes:
-    """Read the whole request body, refusing (413) more than ``max_bytes``.
+class ByteBudget:
+    """Bytes of request bodies held at once (being received, queued or processed).
 
-    Only I/O happens here: chunks are appended to a list and joined once at the end.
+    Spooling moves bodies out of memory but not off the machine: the budget bounds the
+    temporary-file space too, and refuses (503) what would go beyond it.
+    """
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.used = 0
+
+    def take(self, n: int) -> bool:
+        if self.used + n > self.limit:
+            return False
+        self.used += n
+        return True
+
+    def give(self, n: int) -> None:
+        self.used -= n
+
+
+@dataclass
+class Upload:
+    """A complete request body: in ``data`` when small, else in the temporary file ``path``.
+
+    Sent to the worker as is (a path, not the bytes, for large bodies), so the main
+    process never holds a large body in memory.
+    """
+
+    size: int
+    data: bytes | None = None
+    path: str | None = None
+
+    def read(self) -> bytes:
+        if self.data is not None:
+            return self.data
+        assert self.path is not None
+        with open(self.path, "rb") as fh:
+            return fh.read()
+
+    def discard(self) -> None:
+        """Delete the temporary file (if any); safe to call twice."""
+        if self.path is not None:
+            try:
+                os.unlink(self.path)
+            except FileNotFoundError:
+                pass
+            self.path = None
+        self.data = None
+
+
+@dataclass(frozen=True)
+class UploadRules:
+    """How a body must arrive (from the settings)."""
+
+    max_bytes: int
+    spool_bytes: int
+    timeout_s: float
+    grace_s: float
+    min_bytes_per_s: int
+    retry_after_s: int
+
+    @classmethod
+    def from_settings(cls, s: ServiceSettings) -> "UploadRules":
+        return cls(s.max_body_bytes, s.spool_bytes, s.body_timeout_s, s.body_grace_s, s.min_upload_bytes_per_s,
+                   s.retry_after_s)
+
+
+class _Spool:
+    """Chunks -> memory up to ``spool_bytes``, then a temporary file (written as they come, never joined)."""
+
+    def __init__(self, spool_bytes: int) -> None:
+        self.spool_bytes = spool_bytes
+        self.buffer = bytearray()
+        self.file: Any = None
+        self.size = 0
+
+    def write(self, chunk: bytes) -> None:
+        self.size += len(chunk)
+        if self.file is None and self.size > self.spool_bytes:
+            self.file = tempfile.NamedTemporaryFile(prefix="shadowcorr-upload-", delete=False)
+            self.file.write(self.buffer)
+            self.buffer = bytearray()
+        if self.file is not None:
+            self.file.write(chunk)  # page cache: microseconds per chunk, fine on the event loop
+        else:
+            self.buffer += chunk
+
+    def finish(self) -> Upload:
+        if self.file is None:
+            return Upload(self.size, data=bytes(self.buffer))
+        self.file.close()
+        return Upload(self.size, path=self.file.name)
+
+    def abort(self) -> None:
+        if self.file is not None:
+            self.file.close()
+            os.unlink(self.file.name)
+
+
+async def receive_body(request: Request, rules: UploadRules, budget: ByteBudget) -> tuple[Upload, int]:
+    """Receive the whole body before the request takes an admission slot.
+
+    Returns the upload and the bytes it holds of ``budget`` (the caller gives them
+    back when the request is over).  Refuses with
+
+    * 413 over ``max_bytes`` (the declared ``Content-Length`` before a byte is read, or
+      the bytes streamed, since a chunked body declares nothing and a client may lie);
+    * 503 when the bodies in flight would exceed the byte budget;
+    * 408 when the body is not complete within ``timeout_s``, or when, after ``grace_s``,
+      it arrives slower than ``min_bytes_per_s`` on average: a stalled upload is cut
+      off as soon as its rate says it cannot be a real one;
+    * 400 for an empty body or a client that disconnects mid-upload.
     """
     declared = request.headers.get("content-length")
+    reserved = 0
     if declared is not None:
         try:
-            n = int(declared)
+            reserved = int(declared)
         except ValueError:
             raise ApiError(400, "bad_request", f"invalid Content-Length header {declared!r}",
                            [{"loc": "headers.content-length", "msg": "not an integer"}]) from None
-        if n > max_bytes:
-            raise _too_large(max_bytes, f"Content-Length is {n} bytes")
-    chunks: list[bytes] = []
-    total = 0
+        if reserved > rules.max_bytes:
+            raise _too_large(rules.max_bytes, f"Content-Length is {reserved} bytes")
+    if not budget.take(reserved):
+        raise _over_budget(budget, rules)
+    spool = _Spool(rules.spool_bytes)
+    start = time.monotonic()
     try:
-        async for chunk in request.stream():
-            total += len(chunk)
-            if total > max_bytes:
-                raise _too_large(max_bytes, f"more than {max_bytes} bytes received")
-            chunks.append(chunk)
-    except ClientDisconnect:
-        raise ApiError(400, "client_disconnected", "the client disconnected before the body was complete") from None
-    if total == 0:
+        while True:
+            # The next chunk must arrive while the average rate still meets the minimum.
+            due = rules.grace_s + (spool.size / rules.min_bytes_per_s if rules.min_bytes_per_s else rules.timeout_s)
+            wait = min(due, rules.timeout_s) - (time.monotonic() - start)
+            try:
+                message = await asyncio.wait_for(request.receive(), max(wait, 0.0))
+            except asyncio.TimeoutError:
+                raise _too_slow(spool.size, time.monotonic() - start, rules) from None
+            if message["type"] == "http.disconnect":
+                raise ApiError(400, "client_disconnected", "the client disconnected before the body was complete")
+            chunk = message.get("body", b"")
+            if spool.size + len(chunk) > rules.max_bytes:
+                raise _too_large(rules.max_bytes, f"more than {rules.max_bytes} bytes received")
+            if spool.size + len(chunk) > reserved:  # chunked (or lying) body: reserve as it grows
+                if not budget.take(spool.size + len(chunk) - reserved):
+                    raise _over_budget(budget, rules)
+                reserved = spool.size + len(chunk)
+            spool.write(chunk)
+            if not message.get("more_body", False):
+                break
+    except BaseException:
+        spool.abort()
+        budget.give(reserved)
+        raise
+    upload = spool.finish()
+    budget.give(reserved - upload.size)
+    if upload.size == 0:
         raise ApiError(400, "empty_body", "the request body is empty; upload a bundle",
                        [{"loc": "body", "msg": "empty"}])
-    return b"".join(chunks)
+    return upload, upload.size
+
+
+def _over_budget(budget: ByteBudget, rules: UploadRules) -> ApiError:
+    return ApiError(
+        503, "overloaded",
+        f"uploads in flight already hold {budget.used} of max_upload_bytes_in_flight = {budget.limit} bytes; retry later",
+        headers={"Retry-After": str(rules.retry_after_s), "Connection": "close"},
+    )
+
+
+def _too_slow(received: int, elapsed: float, rules: UploadRules) -> ApiError:
+    if elapsed >= rules.timeout_s - 1e-3:
+        why = f"the body did not arrive within body_timeout_s = {rules.timeout_s:g} s"
+    else:
+        why = (f"the body arrives too slowly: {received} bytes in {elapsed:.1f} s, below min_upload_bytes_per_s = "
+               f"{rules.min_bytes_per_s} after the first {rules.grace_s:g} s")
+    return ApiError(408, "body_timeout", why, [{"loc": "body", "msg": why}], headers={"Connection": "close"})
 
 
 def _too_large(limit: int, what: str) -> ApiError:
     return ApiError(
         413,
         "payload_too_large",
-        f"request body too large: {what}; the limit is {limit} bytes",
+        f"request body too large: {what}; the limit is max_body_bytes = {limit} bytes",
         [{"loc": "body", "msg": f"larger than {limit} bytes"}],
+        headers={"Connection": "close"},  # the rest of the body is not read
     )
 
 
-def check_instances(bundle: SceneBundle, max_segments: int, min_blob_pixels: int) -> None:
-    """Cheap checks on the decoded masks, before ``prepare`` spends seconds on them.
+def check_instances(bundle: SceneBundle, limits: RequestLimits, min_blob_pixels: int) -> None:
+    """Cheap checks on the decoded masks: the cost estimate that admits ``prepare`` or not.
 
-    * 413 when the masks hold more instances than ``max_segments``: counted per view as
-      instance ids with at least ``max(min_blob_pixels, 1)`` pixels.  Each gives at least
-      one segment unless splitting leaves only small blobs, so this bound stops absurd
-      masks (every pixel its own id) before the real work.
+    ``prepare`` costs grow with the segments it cuts and the points it back-projects;
+    both are bounded here from counts that take milliseconds, before it spends seconds:
+
+    * 413 ``too_many_segments`` when the masks hold more instances than ``max_segments``:
+      counted per view as instance ids with at least ``max(min_blob_pixels, 1)`` pixels.
+      Each gives at least one segment unless splitting leaves only small blobs, so this
+      bound stops absurd masks (every pixel its own id) before the real work.
+    * 413 ``too_many_points`` when more than ``max_scene_points`` instance pixels have a
+      valid depth (each becomes a 3D point).
     * 422 when no view has an instance pixel with valid depth: there is nothing to match.
 
     Point-segment bundles are limited by the loader (``BundleLimits.max_segments``).
     """
     if bundle.point_segments is not None:
         return
-    total = 0
+    total = points = 0
     any_foreground = False
-    usable = False  # some instance pixel with valid depth (the loader zeroes invalid depth)
     threshold = max(min_blob_pixels, 1)
     for view in bundle.views:
         mask = view.mask
@@ -121,17 +284,25 @@ def check_instances(bundle: SceneBundle, max_segments: int, min_blob_pixels: int
         else:
             _, counts = np.unique(fg, return_counts=True)
         total += int(np.count_nonzero(counts >= threshold))
-        if total > max_segments:
+        if total > limits.max_segments:
             raise JobError(
                 413,
                 "too_many_segments",
                 f"the masks hold at least {total} instances (counted up to view {view.name!r}); "
-                f"the limit is {max_segments} segments per scene",
-                [{"loc": f"views[{view.name}].mask", "msg": f"more than {max_segments} instances in the scene"}],
+                f"the limit is max_segments = {limits.max_segments} segments per scene",
+                [{"loc": f"views[{view.name}].mask", "msg": f"more than {limits.max_segments} instances in the scene"}],
             )
-        if not usable and view.depth is not None and view.depth.shape == mask.shape:
-            usable = bool((view.depth[on] > 0).any())
-    if total == 0 or not usable:
+        if view.depth is not None and view.depth.shape == mask.shape:
+            points += int(np.count_nonzero(view.depth[on] > 0))  # the loader zeroes invalid depth
+        if points > limits.max_scene_points:
+            raise JobError(
+                413,
+                "too_many_points",
+                f"the masks hold at least {points} instance pixels with valid depth (counted up to view "
+                f"{view.name!r}); the limit is max_scene_points = {limits.max_scene_points}",
+                [{"loc": f"views[{view.name}].mask", "msg": f"more than {limits.max_scene_points} points"}],
+            )
+    if total == 0 or points == 0:
         if not any_foreground:
             why = "every mask is empty (all background)"
         elif total == 0:

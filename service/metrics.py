@@ -47,7 +47,10 @@ class ServiceMetrics:
         )
         self.errors = Counter("shadowcorr_errors", "error responses by error code", ["code"], registry=r)
         self.queue_depth = Gauge(
-            "shadowcorr_queue_depth", "/correspond requests admitted and not finished (uploading, queued or running)", registry=r
+            "shadowcorr_queue_depth", "/correspond requests admitted (body received) and not finished, or whose worker job still runs", registry=r
+        )
+        self.upload_bytes = Gauge(
+            "shadowcorr_upload_bytes_in_flight", "bytes of request bodies being received or processed", registry=r
         )
         self.pool_pending = Gauge("shadowcorr_worker_queue_depth", "jobs waiting for a worker process", registry=r)
         self.batcher_pending = Gauge("shadowcorr_batcher_queue_depth", "scenes waiting for the network", registry=r)

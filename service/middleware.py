@@ -1,4 +1,8 @@
-"""Pure-ASGI middleware: bearer-token check and per-request metrics.
+"""Pure-ASGI middleware: bearer-token check, request-head size limit and per-request metrics.
+
+The head limit (request line + headers, ``max_header_bytes``) is mostly enforced by h11
+while the head arrives in pieces (see ``protocol.py``); a head that arrives complete
+in one read is measured here.
 
 Pure ASGI (not ``BaseHTTPMiddleware``) so request bodies stream through untouched and
 no extra task is spawned per request.
@@ -26,10 +30,18 @@ PUBLIC_PATHS = frozenset({"/health"})
 class AccessMiddleware:
     """Counts requests by route and status, times them, and enforces the bearer token."""
 
-    def __init__(self, app: Callable[..., Awaitable[None]], metrics: ServiceMetrics, token: str | None) -> None:
+    def __init__(
+        self, app: Callable[..., Awaitable[None]], metrics: ServiceMetrics, token: str | None, max_header_bytes: int
+    ) -> None:
         self.app = app
         self.metrics = metrics
         self._expected = f"Bearer {token}".encode() if token else None
+        self.max_header_bytes = max_header_bytes
+
+    @staticmethod
+    def _head_bytes(scope: Scope) -> int:
+        line = len(scope.get("raw_path", b"")) + len(scope.get("query_string", b"")) + 32
+        return line + sum(len(k) + len(v) + 4 for k, v in scope.get("headers", ()))
 
     def _authorized(self, scope: Scope) -> bool:
         if self._expected is None or scope["path"] in PUBLIC_PATHS:
@@ -57,6 +69,18 @@ class AccessMiddleware:
             await send(message)
 
         try:
+            if self._head_bytes(scope) > self.max_header_bytes:
+                response = error_response(
+                    431,
+                    "headers_too_large",
+                    f"the request line and headers are larger than max_header_bytes = {self.max_header_bytes} bytes "
+                    "(a query string counts too)",
+                    [{"loc": "headers", "msg": f"larger than {self.max_header_bytes} bytes"}],
+                    headers={"Connection": "close"},
+                )
+                self.metrics.errors.labels("headers_too_large").inc()
+                await response(scope, receive, send_wrapper)
+                return
             if not self._authorized(scope):
                 response = error_response(
                     401,

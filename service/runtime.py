@@ -36,7 +36,7 @@ from shadowcorr.voxel_scene import VoxelScene
 from . import jobs
 from .batcher import DynamicBatcher
 from .errors import ApiError, JobError
-from .limits import RequestLimits
+from .limits import ByteBudget, RequestLimits, Upload, UploadRules, receive_body
 from .metrics import ServiceMetrics
 from .settings import ServiceSettings
 from .workers import PRIORITY_FINISH, PRIORITY_START, WorkerCrashed, WorkerPool
@@ -67,7 +67,7 @@ class Runtime:
             torch_threads=settings.torch_threads,
             metrics=self.metrics,
             startup_timeout_s=settings.startup_timeout_s,
-            kill_grace_s=settings.request_timeout_s,
+            kill_grace_s=settings.cancel_grace_s,
         )
         self.batcher: DynamicBatcher[VoxelScene, np.ndarray] = DynamicBatcher(
             self._embed,
@@ -78,6 +78,12 @@ class Runtime:
             upstream=lambda: self.preparing,
         )
         self._startup_task: asyncio.Task | None = None
+        self.budget = ByteBudget(settings.max_upload_bytes_in_flight)
+        self.per_client: dict[str, int] = {}  # admitted requests by client address
+        self.upload_rules = UploadRules.from_settings(settings)
+        self.shutdown_deadline: float | None = None  # time.monotonic() by which requests must be answered
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop_event = asyncio.Event()
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
@@ -90,7 +96,7 @@ class Runtime:
         background while ``/health`` answers 503.
         """
         self.started_at = time.monotonic()
-        loop = asyncio.get_running_loop()
+        loop = self._loop = asyncio.get_running_loop()
         # torch work (threads setting, file read, state-dict checks) stays off the event loop.
         self.model = await loop.run_in_executor(self._thread, self._load_model)
         self.model_info = model_info(self.model)
@@ -185,6 +191,9 @@ class Runtime:
                 "max_views": s.max_views,
                 "max_pixels_per_view": s.max_pixels_per_view,
                 "max_segments": s.max_segments,
+                "max_scene_points": s.max_scene_points,
+                "max_requests_per_client": s.max_requests_per_client,
+                "max_upload_bytes_in_flight": s.max_upload_bytes_in_flight,
                 "queue_size": s.queue_size,
                 "request_timeout_s": s.request_timeout_s,
             },
@@ -203,23 +212,84 @@ class Runtime:
         }
 
     # ------------------------------------------------------------------ requests
-    def admit(self) -> "Ticket":
-        """Count a request in, or refuse it (503) when not ready or when the queue is full."""
+    def begin_shutdown(self) -> None:
+        """SIGTERM / SIGINT arrived (called from the signal handler, so thread-safe).
+
+        In-flight requests get ``graceful_shutdown_s`` from now to finish; those still
+        running then are answered 503 by :meth:`until_shutdown_deadline`.
+        """
+        if self._loop is not None and self.shutdown_deadline is None:
+            deadline = time.monotonic() + self.settings.graceful_shutdown_s
+            self._loop.call_soon_threadsafe(self._stopping, deadline)
+
+    def _stopping(self, deadline: float) -> None:
+        self.shutdown_deadline = deadline
+        self._stop_event.set()
+
+    async def until_shutdown_deadline(self) -> None:
+        """Return at the shutdown deadline (never, while the service is not shutting down)."""
+        await self._stop_event.wait()
+        assert self.shutdown_deadline is not None
+        await asyncio.sleep(max(0.0, self.shutdown_deadline - time.monotonic()))
+
+    def check_accepting(self) -> None:
+        """503 (with Retry-After) while warming up or shutting down: before reading a byte of the body."""
         headers = {"Retry-After": str(self.settings.retry_after_s)}
+        if self.shutdown_deadline is not None:
+            raise ApiError(503, "shutting_down", "the service is shutting down; retry later", headers=headers)
         if not self.ready:
             why = self.startup_error or "the model is loading and the workers are warming up"
             raise ApiError(503, "not_ready", f"the service is not ready: {why}", headers=headers)
-        if self.in_flight >= self.settings.queue_size:
-            raise ApiError(
-                503,
-                "overloaded",
-                f"{self.in_flight} requests in flight, the limit is {self.settings.queue_size}; retry later",
-                headers=headers,
-            )
+
+    async def receive(self, request: Any) -> tuple[Upload, int]:
+        """The request's whole body (see ``limits.receive_body``), timed as stage ``read_body``."""
+        t0 = time.perf_counter()
+        try:
+            return await receive_body(request, self.upload_rules, self.budget)
+        finally:
+            self.metrics.stage_latency.labels("read_body").observe(time.perf_counter() - t0)
+            self.metrics.upload_bytes.set(self.budget.used)
+
+    def admit(self, upload: Upload, reserved: int, started: float, client: str) -> "Ticket":
+        """Take an admission slot for a received body, or refuse it and drop the body.
+
+        503 when ``queue_size`` requests are in flight; 429 when this client (by address)
+        already holds ``max_requests_per_client`` of them, so that one busy client cannot
+        take every slot from the others.  From here the ticket owns the upload and its
+        share of the byte budget, until :meth:`release` *and* the end of every worker job
+        it started.
+        """
+        ticket = Ticket(upload, reserved, started, client)
+        ticket.read_ms = (time.monotonic() - started) * 1e3
+        retry = {"Retry-After": str(self.settings.retry_after_s)}
+        try:
+            self.check_accepting()
+            if self.in_flight >= self.settings.queue_size:
+                raise ApiError(
+                    503,
+                    "overloaded",
+                    f"{self.in_flight} requests in flight, the limit is queue_size = {self.settings.queue_size}; "
+                    "retry later",
+                    headers=retry,
+                )
+            held = self.per_client.get(client, 0)
+            if held >= self.settings.max_requests_per_client:
+                raise ApiError(
+                    429,
+                    "too_many_requests",
+                    f"this client already has {held} requests in flight, the limit is max_requests_per_client = "
+                    f"{self.settings.max_requests_per_client}; retry when one has finished",
+                    headers=retry,
+                )
+        except ApiError:
+            self._drop_upload(ticket)
+            raise
         self.in_flight += 1
         self.preparing += 1
+        self.per_client[client] = self.per_client.get(client, 0) + 1
+        ticket.admitted = True
         self.metrics.queue_depth.set(self.in_flight)
-        return Ticket()
+        return ticket
 
     def left_upstream(self, ticket: "Ticket") -> None:
         """The request will not reach the batcher any more (it has a scene, or failed)."""
@@ -228,40 +298,66 @@ class Runtime:
             self.preparing -= 1
 
     def release(self, ticket: "Ticket") -> None:
+        """The request is answered; its slot is freed once no worker runs a job of it any more."""
         self.left_upstream(ticket)
-        self.in_flight -= 1
-        self.metrics.queue_depth.set(self.in_flight)
+        ticket.ended = True
+        self._free_if_idle(ticket)
 
-    async def correspond(
-        self, ticket: "Ticket", body: bytes, content_type: str, config: ShadowCorrConfig, metrics: bool
-    ) -> bytes:
+    def _job_stopped(self, ticket: "Ticket") -> None:
+        ticket.jobs -= 1
+        self._free_if_idle(ticket)
+
+    def _free_if_idle(self, ticket: "Ticket") -> None:
+        if ticket.ended and ticket.jobs == 0 and ticket.admitted:
+            ticket.admitted = False
+            self.in_flight -= 1
+            left = self.per_client.pop(ticket.client) - 1
+            if left:
+                self.per_client[ticket.client] = left
+            self.metrics.queue_depth.set(self.in_flight)
+            self._drop_upload(ticket)
+
+    def _drop_upload(self, ticket: "Ticket") -> None:
+        ticket.upload.discard()
+        self.budget.give(ticket.reserved)
+        ticket.reserved = 0
+        self.metrics.upload_bytes.set(self.budget.used)
+
+    async def _run_job(self, ticket: "Ticket", fn: Any, *args: Any, priority: int) -> Any:
+        ticket.jobs += 1
+        return await self.pool.run(fn, *args, priority=priority, on_stopped=lambda: self._job_stopped(ticket))
+
+    async def correspond(self, ticket: "Ticket", content_type: str, config: ShadowCorrConfig, metrics: bool) -> bytes:
         """Run one scene through the pipeline; returns the Result JSON bytes."""
         stage = self.metrics.stage_latency
         t_start = time.perf_counter()
+        read_ms = {"read_body": ticket.read_ms}
         try:
             if config.method not in NETWORK_METHODS:
                 self.left_upstream(ticket)  # no network: never in the batcher
-                out = await self.pool.run(jobs.baseline, body, content_type, config, self.limits, metrics)
+                out = await self._run_job(ticket, jobs.baseline, ticket.upload, content_type, config, self.limits,
+                                          metrics, read_ms, ticket.started, priority=PRIORITY_START)
                 stage.labels("baseline").observe(time.perf_counter() - t_start)
                 return out
             try:
-                prepared: jobs.Prepared = await self.pool.run(
-                    jobs.decode_and_prepare, body, content_type, config, self.limits, priority=PRIORITY_START
+                prepared: jobs.Prepared = await self._run_job(
+                    ticket, jobs.decode_and_prepare, ticket.upload, content_type, config, self.limits,
+                    priority=PRIORITY_START,
                 )
             finally:
                 self.left_upstream(ticket)
-            del body  # the upload is no longer needed; let it go before the long waits
             t_prepared = time.perf_counter()
             stage.labels("queue").observe(max(0.0, t_prepared - t_start - (prepared.decode_ms + prepared.prepare_ms) / 1e3))
             stage.labels("decode").observe(prepared.decode_ms / 1e3)
             stage.labels("prepare").observe(prepared.prepare_ms / 1e3)
             embeddings, batch = await self.batcher.submit(prepared.scene)
             stage.labels("batch_wait").observe(batch.wait_s)
-            extra = {"decode": prepared.decode_ms, "batch_wait": batch.wait_s * 1e3, "network": batch.run_s * 1e3}
+            extra = {**read_ms, "decode": prepared.decode_ms, "batch_wait": batch.wait_s * 1e3,
+                     "network": batch.run_s * 1e3}
             t_assign = time.perf_counter()
-            out = await self.pool.run(
-                jobs.assign_scene, prepared.scene, embeddings, config, self.model_info, metrics, extra,
-                priority=PRIORITY_FINISH,
+            out = await self._run_job(
+                ticket, jobs.assign_scene, prepared.scene, embeddings, config, self.model_info, metrics, extra,
+                ticket.started, priority=PRIORITY_FINISH,
             )
             stage.labels("assign").observe(time.perf_counter() - t_assign)
             return out
@@ -279,12 +375,20 @@ class Runtime:
 
 
 class Ticket:
-    """One admitted request's place in the bookkeeping."""
+    """One admitted request's place in the bookkeeping: its upload, budget share and running jobs."""
 
-    __slots__ = ("upstream",)
+    __slots__ = ("upstream", "upload", "reserved", "started", "read_ms", "client", "jobs", "ended", "admitted")
 
-    def __init__(self) -> None:
-        self.upstream = True
+    def __init__(self, upload: Upload, reserved: int, started: float, client: str) -> None:
+        self.upstream = True  # may still reach the batcher
+        self.upload = upload
+        self.reserved = reserved  # bytes of the upload budget held
+        self.started = started  # time.monotonic() when the body started to arrive
+        self.read_ms = 0.0  # how long the body took to arrive
+        self.client = client  # the client's address, for the per-client limit
+        self.jobs = 0  # worker jobs started and not yet stopped
+        self.ended = False  # the request has been answered (or abandoned)
+        self.admitted = False  # holds an admission slot
 
 
 def _request_options() -> tuple[str, ...]:

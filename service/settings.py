@@ -39,10 +39,31 @@ class ServiceSettings(BaseSettings):
 
     # --- admission and time limits
     queue_size: int = Field(32, ge=1, description="requests admitted at once (uploading, queued or running); more get 503")
+    max_requests_per_client: int = Field(
+        16, ge=1, description="requests one client address may have admitted at once; more get 429"
+    )
     request_timeout_s: float = Field(120.0, gt=0, description="a request not finished after this gets 504")
     retry_after_s: int = Field(2, ge=0, description="Retry-After sent with 503 responses")
     graceful_shutdown_s: float = Field(30.0, ge=0, description="on SIGTERM, how long in-flight requests may finish")
     startup_timeout_s: float = Field(600.0, gt=0, description="longest a worker process may take to start and warm up")
+    cancel_grace_s: float = Field(
+        2.0, ge=0, description="a job whose request gave up (timeout, disconnect) may run this long before its worker is killed"
+    )
+
+    # --- connections and uploads (a slow or stalled client must not hold anything others need)
+    max_connections: int = Field(256, ge=1, description="open connections at once; more are answered 503 and closed")
+    header_timeout_s: float = Field(5.0, gt=0, description="longest a connection may take to send a request's headers (408 beyond)")
+    keep_alive_s: float = Field(5.0, gt=0, description="idle keep-alive connections are closed after this")
+    body_timeout_s: float = Field(300.0, gt=0, description="longest a request body may take to arrive (408 beyond)")
+    body_grace_s: float = Field(5.0, ge=0, description="an upload may be slower than min_upload_bytes_per_s for its first seconds")
+    min_upload_bytes_per_s: int = Field(
+        32 * 1024, ge=0, description="an upload must average at least this rate after body_grace_s (408 below)"
+    )
+    max_upload_bytes_in_flight: int = Field(
+        1024 * MiB, ge=1024, description="bytes of all bodies being received or processed at once; more get 503"
+    )
+    max_header_bytes: int = Field(64 * 1024, ge=1024, description="largest request line + headers (431 beyond)")
+    spool_bytes: int = Field(1 * MiB, ge=0, description="bodies larger than this go to a temporary file, not memory")
 
     # --- input limits
     max_body_bytes: int = Field(128 * MiB, ge=1024, description="largest request body (413 beyond)")
@@ -50,7 +71,13 @@ class ServiceSettings(BaseSettings):
     max_files: int = Field(64, ge=1, description="files in an archive / file parts in an upload")
     max_views: int = Field(16, ge=1, description="views per scene")
     max_pixels_per_view: int = Field(4096 * 4096, ge=1, description="width x height of one view")
-    max_segments: int = Field(2000, ge=1, description="segments per scene")
+    # prepare's cost grows faster than linearly with the segments (segment embeddings: 2 s
+    # at 200 segments, 19 s at 400, 53 s at 800 on one busy core), so this bound is what
+    # keeps a cheap upload from holding a worker for minutes.
+    max_segments: int = Field(500, ge=1, description="segments per scene (counted from the masks before prepare)")
+    max_scene_points: int = Field(
+        8_000_000, ge=1, description="instance pixels with valid depth in all views (the points prepare back-projects)"
+    )
 
     # --- security and logging
     auth_token: SecretStr | None = Field(None, description="when set, every route but /health needs 'Authorization: Bearer <token>'")

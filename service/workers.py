@@ -19,11 +19,13 @@ ones (decode + prepare), so under load each request completes as early as possib
 instead of all of them completing late together.
 
 Cancellation: a job whose request gave up (timeout, client gone) is skipped if still
-queued.  If it is running it may finish (usually a second or two, far cheaper than
-starting and warming up a new worker), but if it is still running ``kill_grace_s``
-later it is taken for a runaway: its worker is killed and replaced, since a process
-cannot be interrupted otherwise and the slot must not stay blocked on work nobody
-waits for.
+queued.  If it is running it may finish within ``kill_grace_s`` (a couple of seconds:
+cheaper than starting and warming up a new worker); if it is still running then, its
+worker is killed and replaced, since a process cannot be interrupted otherwise and the
+slot must not stay blocked on work nobody waits for.  ``on_stopped`` tells the caller
+when the job really let go of its worker (the service holds the request's admission
+slot until then, so a cancelled request cannot make room for more work than the
+workers can take).
 """
 
 from __future__ import annotations
@@ -64,6 +66,12 @@ class _Job:
     args: tuple[Any, ...]
     future: asyncio.Future
     slot: "_Slot | None" = None
+    on_stopped: Callable[[], None] | None = None  # called once, when the job can no longer use a worker
+
+    def stopped(self) -> None:
+        callback, self.on_stopped = self.on_stopped, None
+        if callback is not None:
+            callback()
 
 
 @dataclass
@@ -151,6 +159,7 @@ class WorkerPool:
             _, _, job = self._queue.get_nowait()
             if not job.future.done():
                 job.future.set_exception(RuntimeError("the service is shutting down"))
+            job.stopped()
 
     # ------------------------------------------------------------------ state
     @property
@@ -169,16 +178,25 @@ class WorkerPool:
         return [s.pid for s in self._slots if s.pid is not None]
 
     # ------------------------------------------------------------------ jobs
-    async def run(self, fn: Callable[..., Any], *args: Any, priority: int = PRIORITY_START) -> Any:
+    async def run(
+        self,
+        fn: Callable[..., Any],
+        *args: Any,
+        priority: int = PRIORITY_START,
+        on_stopped: Callable[[], None] | None = None,
+    ) -> Any:
         """Run ``fn(*args)`` in a worker process and return its result.
 
         Raises whatever ``fn`` raised (a :class:`JobError` for input problems), or
-        :class:`WorkerCrashed` when the worker died while running it.
+        :class:`WorkerCrashed` when the worker died while running it.  ``on_stopped`` is
+        called once the job holds no worker any more: when it ends, when it is dropped
+        from the queue, or, if the caller is cancelled mid-job, only when the worker has
+        really finished it or been killed.
         """
         if self._closing:
             raise RuntimeError("the service is shutting down")
         loop = asyncio.get_running_loop()
-        job = _Job(fn, args, loop.create_future())
+        job = _Job(fn, args, loop.create_future(), on_stopped=on_stopped)
         self._queue.put_nowait((priority, next(self._seq), job))
         self._gauge()
         try:
@@ -189,6 +207,9 @@ class WorkerPool:
             if job.slot is not None:
                 loop.call_later(self.kill_grace_s, self._kill_if_still_running, job)
             raise
+        finally:
+            if job.slot is None:
+                job.stopped()
 
     def _kill_if_still_running(self, job: _Job) -> None:
         slot = job.slot
@@ -268,6 +289,7 @@ class WorkerPool:
             _settle(job, result=result)
         finally:
             slot.job, job.slot = None, None
+            job.stopped()
             if self._closing:  # the slot was stopped mid-job: nobody may wait forever
                 _settle(job, exc=RuntimeError("the service is shutting down"))
 

@@ -18,7 +18,7 @@ from .config import NETWORK_METHODS, ShadowCorrConfig
 from .nn import Model, load_model, run_batched
 from .pose_refinement import pose_warnings, refine_poses
 from .result import ModelInfo, Result
-from .segments import extract_segments
+from .segments import check_valid_depth, extract_segments
 from .shadows import ShadowVoxels, cast_shadows, raw_shells, segment_shells
 from .surface_evidence import surface_evidence
 from .voxel_scene import VoxelScene, build_voxel_scene
@@ -45,6 +45,7 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
             "the scene has no segments: every mask is empty, or every blob is smaller than "
             f"min_blob_pixels = {config.min_blob_pixels}"
         )
+    depth_warnings = check_valid_depth(segments, bundle.units, config)  # DepthRangeError when nearly all are empty
     timings["segments"] = (time.perf_counter() - t0) * 1e3
     surface = None
     if config.method in ("projection", "fused"):
@@ -65,7 +66,7 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     )
     scene.surface = surface
     scene.poses = poses
-    scene.warnings[:0] = list(bundle.warnings) + (pose_warnings(poses) if poses else [])
+    scene.warnings[:0] = list(bundle.warnings) + (pose_warnings(poses) if poses else []) + depth_warnings
     return scene
 
 

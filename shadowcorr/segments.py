@@ -231,3 +231,36 @@ def _from_point_segments(bundle: SceneBundle, scale: float) -> Segments:
         view_names=[v.name for v in bundle.views],
         truth=None if ps.object is None else np.asarray(ps.object, dtype=np.int64),
     )
+
+
+#: Share of segments without a valid point at which a scene is refused rather than labelled.
+MAX_EMPTY_SEGMENT_SHARE = 0.9
+
+
+class DepthRangeError(ValueError):
+    """Nearly every segment of a scene has no valid depth point (wrong ``units``, or ``max_depth`` too small).
+
+    Such a scene would come out as "one object per segment" with nothing to match, which
+    looks like a result but is not one; callers (the CLI, the HTTP service) report it as
+    bad input.
+    """
+
+
+def check_valid_depth(segments: Segments, bundle_units: str, config: ShadowCorrConfig) -> list[str]:
+    """Refuse a scene whose segments nearly all lack valid depth; warn about any that do.
+
+    Raises :class:`DepthRangeError` when at least ``MAX_EMPTY_SEGMENT_SHARE`` of the
+    segments have no back-projected point (depth <= 0, non-finite, or beyond
+    ``max_depth``).  Otherwise returns one summary warning when some segments are
+    empty (the per-segment details come later, from the assignment), or nothing.
+    """
+    empty = int(np.count_nonzero(segments.lengths == 0))
+    total = segments.num_segments
+    if empty == 0 or total == 0:
+        return []
+    limit = config.max_depth / unit_scale(bundle_units, config.units)
+    what = (f"{empty} of {total} segments have no valid depth point (every depth is <= 0, not finite, or beyond "
+            f"max_depth = {config.max_depth:g} {config.units} = {limit:g} {bundle_units} in the bundle's units)")
+    if empty >= MAX_EMPTY_SEGMENT_SHARE * total:
+        raise DepthRangeError(f"{what}: check the manifest's units (\"{bundle_units}\") and max_depth")
+    return [f"{what}; they are labelled without 3D evidence"]

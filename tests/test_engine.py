@@ -9,7 +9,7 @@ import pytest
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle, View
 from shadowcorr.segment_embedding import cooccurrence, segment_embedding_loss, train_segment_embeddings
-from shadowcorr.segments import extract_segments
+from shadowcorr.segments import DepthRangeError, extract_segments
 from shadowcorr.shadows import beta_profile, cast_shadows, segment_shells, voxel_downsample
 
 from .paths import REFERENCE_CHECKPOINT as REFERENCE
@@ -214,10 +214,14 @@ def test_scene_without_segments_is_a_clear_error():
 
 
 def test_segments_without_valid_depth_still_get_labels(model):
-    bundle = sphere_scene([[0, 0, 0]], [40], cameras=2)
+    bundle = sphere_scene([[0, 0, 0]], [40], cameras=3)
+    bundle.views[0].depth[:] = 0  # one of three segments has no valid depth: labelled, and flagged first
+    result = correspond(bundle, model)
+    assert result.segments[0].assignment == "own_object" and result.segments[0].num_points == 0
+    assert "1 of 3 segments have no valid depth point" in result.warnings[0], result.warnings
+    assert "no valid 3D point" in result.warnings[-1]
+    # with every segment empty there is nothing to match: refused, naming units and max_depth
     for v in bundle.views:
         v.depth[:] = 0
-    result = correspond(bundle, model)
-    assert [s.assignment for s in result.segments] == ["own_object", "own_object"]
-    assert len({s.object for s in result.segments}) == 2
-    assert all("no valid 3D point" in w for w in result.warnings[-2:])
+    with pytest.raises(DepthRangeError, match="units.*max_depth"):
+        correspond(bundle, model)

@@ -122,9 +122,10 @@ class _Source:
 class _PartsSource(_Source):
     """Files held in memory (upload parts, archive members), keyed by normalised path."""
 
-    def __init__(self, files: Mapping[str, bytes], what: str) -> None:
+    def __init__(self, files: Mapping[str, bytes], what: str, skipped: list[str] | None = None) -> None:
         self.files = dict(files)
         self.what = what  # "uploaded files" / "archive" -- used in messages
+        self.skipped = list(skipped or [])  # archive members never decompressed: the manifest does not name them
 
     def exists(self, rel: str) -> bool:
         return rel in self.files
@@ -136,7 +137,7 @@ class _PartsSource(_Source):
             raise BundleError(f"file {rel!r} is not in the {self.what}", loc=loc) from None
 
     def unreferenced(self, used: set[str]) -> list[str]:
-        return sorted(set(self.files) - used)
+        return sorted((set(self.files) - used) | set(self.skipped))
 
 
 class _DirSource(_Source):
@@ -207,6 +208,45 @@ class _TooBig(Exception):
     pass
 
 
+#: Members expanding to less than this are not ratio-checked one by one (a small file of
+#: zeros compresses far beyond any bomb ratio and is harmless).
+_MEMBER_RATIO_MIN_BYTES = 1 * MiB
+
+
+def _is_manifest(name: str) -> bool:
+    """A manifest candidate: at the archive root, or inside exactly one top-level folder."""
+    return name == MANIFEST_NAME or (name.count("/") == 1 and name.endswith("/" + MANIFEST_NAME))
+
+
+class _Named:
+    """Which archive members to decompress: manifest candidates, then only what the manifest names.
+
+    Until a manifest has been read every member is wanted (a tar stream may put files
+    before it); afterwards only the manifest's own files under its folder.  A manifest
+    that cannot be parsed names nothing: the loader reports it, from the manifest alone.
+    """
+
+    def __init__(self, limits: BundleLimits) -> None:
+        self.limits = limits
+        self.names: set[str] | None = None
+
+    def learn(self, manifest_name: str, data: bytes) -> None:
+        prefix = manifest_name[: -len(MANIFEST_NAME)]
+        self.names = set()
+        try:
+            refs = _raw_file_refs(_parse_manifest(data, self.limits))
+        except BundleError:
+            return
+        for _, path in refs:
+            try:
+                self.names.add(prefix + normalize_bundle_path(path))
+            except (ValueError, TypeError):
+                continue  # the loader reports the bad path
+
+    def wants(self, name: str) -> bool:
+        return self.names is None or _is_manifest(name) or name in self.names
+
+
 _SKIP = re.compile(r"(^|/)(__MACOSX/|\._)")  # macOS Finder litter in zips: never bundle content
 
 
@@ -233,19 +273,21 @@ def _member_name(name: str, problems: list[Problem]) -> str | None:
         return None
 
 
-def _read_zip(fh: IO[bytes], archive_size: int, limits: BundleLimits) -> tuple[dict[str, bytes], list[Problem]]:
+def _read_zip(
+    fh: IO[bytes], archive_size: int, limits: BundleLimits
+) -> tuple[dict[str, bytes], list[Problem], list[str]]:
+    """The manifest and the members it names (decompressed), problems, and the names of members left unread."""
     problems: list[Problem] = []
     files: dict[str, bytes] = {}
     try:
         zf = zipfile.ZipFile(fh)
     except (zipfile.BadZipFile, OSError, ValueError) as e:
-        return {}, [Problem(loc="archive", msg=f"not a readable .zip: {e}")]
+        return {}, [Problem(loc="archive", msg=f"not a readable .zip: {e}")], []
     with zf:
         infos = zf.infolist()
         if len(infos) > 4 * limits.max_files + 16:  # bound the work spent on directory entries too
-            return {}, [Problem(loc="archive", msg=f"archive has {len(infos)} entries; the limit is {limits.max_files} files")]
+            return {}, [Problem(loc="archive", msg=f"archive has {len(infos)} entries; the limit is {limits.max_files} files")], []
         wanted: list[tuple[str, zipfile.ZipInfo]] = []
-        declared = compressed = 0
         for info in infos:
             if _SKIP.search(info.filename) or info.is_dir():
                 continue
@@ -260,31 +302,58 @@ def _read_zip(fh: IO[bytes], archive_size: int, limits: BundleLimits) -> tuple[d
             if info.flag_bits & 0x1:
                 problems.append(Problem(loc=f"archive[{info.filename!r}]", msg="encrypted members are not supported"))
                 continue
-            declared += info.file_size
-            compressed += info.compress_size
             wanted.append((name, info))
-        problems += _size_problems(len(wanted), declared, compressed or archive_size, limits)
         names = [n for n, _ in wanted]
         dups = sorted({n for n in names if names.count(n) > 1})
         if dups:
             problems.append(Problem(loc="archive", msg=f"duplicate members {dups[:5]}"))
+        if len(wanted) > limits.max_files:
+            problems.append(Problem(loc="archive", msg=f"archive holds {len(wanted)} files; the limit is {limits.max_files}"))
         if problems:
-            return {}, problems
+            return {}, problems, []
+        named = _Named(limits)
+        manifests = [(n, i) for n, i in wanted if _is_manifest(n)]
+        if len(manifests) == 1:  # several (or none): the loader says so, from the candidates alone
+            data, problem = _zip_member(zf, manifests[0][1], limits.max_manifest_bytes + 1)
+            if problem is not None:
+                return {}, [problem], []
+            named.learn(manifests[0][0], data)
+        else:
+            named.names = set()
+        skipped = [n for n, _ in wanted if not named.wants(n)]
+        wanted = [(n, i) for n, i in wanted if named.wants(n)]
+        declared = sum(i.file_size for _, i in wanted)
+        problems += _size_problems(0, declared, sum(i.compress_size for _, i in wanted) or archive_size, limits)
+        for _, info in wanted:
+            ratio = info.file_size / max(info.compress_size, 1)
+            if info.file_size > _MEMBER_RATIO_MIN_BYTES and ratio > limits.max_compression_ratio:
+                problems.append(Problem(loc=f"archive[{info.filename!r}]",
+                                        msg=f"compression ratio {ratio:.0f}:1 exceeds "
+                                        f"{limits.max_compression_ratio:.0f}:1 (zip bomb?)"))
+        if problems:
+            return {}, problems, []
         total = 0
         for name, info in wanted:
-            try:
-                with zf.open(info) as m:
-                    # zipfile stops at the declared size; asking for one byte more detects a liar.
-                    data = m.read(info.file_size + 1)
-            except (zipfile.BadZipFile, OSError, NotImplementedError, RuntimeError, ValueError, EOFError, lzma.LZMAError) as e:
-                problems.append(Problem(loc=f"archive[{info.filename!r}]", msg=f"cannot extract: {e}"))
+            # zipfile stops at the declared size; asking for one byte more detects a liar.
+            data, problem = _zip_member(zf, info, info.file_size + 1)
+            if problem is not None:
+                problems.append(problem)
                 continue
             total += len(data)
             if len(data) > info.file_size or total > limits.max_total_bytes:
                 problems.append(Problem(loc=f"archive[{info.filename!r}]", msg="member is larger than declared / over the size limit"))
                 break
             files[name] = data
-    return files, problems
+    return files, problems, skipped
+
+
+def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, max_bytes: int) -> tuple[bytes, Problem | None]:
+    """At most ``max_bytes`` of one member, or the problem that stopped its extraction."""
+    try:
+        with zf.open(info) as m:
+            return m.read(max_bytes), None
+    except (zipfile.BadZipFile, OSError, NotImplementedError, RuntimeError, ValueError, EOFError, lzma.LZMAError) as e:
+        return b"", Problem(loc=f"archive[{info.filename!r}]", msg=f"cannot extract: {e}")
 
 
 def _size_problems(n_files: int, declared: int, compressed: int, limits: BundleLimits) -> list[Problem]:
@@ -306,9 +375,15 @@ def _size_problems(n_files: int, declared: int, compressed: int, limits: BundleL
     return out
 
 
-def _read_tar(fh: IO[bytes], kind: str, archive_size: int, limits: BundleLimits) -> tuple[dict[str, bytes], list[Problem]]:
+def _read_tar(
+    fh: IO[bytes], kind: str, archive_size: int, limits: BundleLimits
+) -> tuple[dict[str, bytes], list[Problem], list[str]]:
+    """Like ``_read_zip``; a tar stream can only be skipped through, so members after the
+    manifest that it does not name are passed over unkept (the decompressed stream stays capped)."""
     problems: list[Problem] = []
     files: dict[str, bytes] = {}
+    named = _Named(limits)
+    skipped: list[str] = []
     stream: IO[bytes] = fh
     if kind == "gz":
         stream = gzip.GzipFile(fileobj=fh, mode="rb")  # type: ignore[assignment]
@@ -341,12 +416,16 @@ def _read_tar(fh: IO[bytes], kind: str, archive_size: int, limits: BundleLimits)
                 if not m.isreg() or m.issparse():
                     problems.append(Problem(loc=where, msg="only regular files are allowed (device, fifo or sparse member)"))
                     continue
-                declared += m.size
-                if len(files) + 1 > limits.max_files or declared > limits.max_total_bytes:
+                declared += m.size  # skipped members count too: the stream decompresses them all the same
+                bomb = declared > limits.ratio_check_min_bytes and declared / max(archive_size, 1) > limits.max_compression_ratio
+                if len(files) + 1 > limits.max_files or declared > limits.max_total_bytes or bomb:
                     problems += _size_problems(len(files) + 1, declared, archive_size, limits)
                     break
                 if name in files:
                     problems.append(Problem(loc=where, msg="duplicate member"))
+                    continue
+                if not named.wants(name):
+                    skipped.append(name)
                     continue
                 ex = tf.extractfile(m)
                 data = ex.read(m.size) if ex is not None else b""
@@ -354,18 +433,27 @@ def _read_tar(fh: IO[bytes], kind: str, archive_size: int, limits: BundleLimits)
                     problems.append(Problem(loc=where, msg="member is truncated"))
                     break
                 files[name] = data
-                if declared > limits.ratio_check_min_bytes and declared / max(archive_size, 1) > limits.max_compression_ratio:
-                    problems += _size_problems(len(files), declared, archive_size, limits)
-                    break
+                if _is_manifest(name):
+                    named.learn(name, data)
     except _TooBig as e:
         problems.append(Problem(loc="archive", msg=str(e)))
     except (tarfile.TarError, OSError, EOFError, lzma.LZMAError, ValueError) as e:
         problems.append(Problem(loc="archive", msg=f"not a readable .tar archive: {e}"))
-    return files, problems
+    early = [n for n in files if not named.wants(n)]  # kept before the manifest came, not named by it
+    for n in early:
+        del files[n]
+    return files, problems, skipped + early
 
 
-def _read_archive(fh: IO[bytes], archive_size: int, limits: BundleLimits) -> dict[str, bytes]:
-    """All regular members of a .zip / .tar(.gz|.bz2|.xz), bounded by ``limits``."""
+def _load_archive(fh: IO[bytes], archive_size: int, limits: BundleLimits) -> SceneBundle:
+    files, skipped = _read_archive(fh, archive_size, limits)
+    manifest, rest = _split_root(files)
+    return _load(manifest, _PartsSource(rest, "archive", skipped), limits)
+
+
+def _read_archive(fh: IO[bytes], archive_size: int, limits: BundleLimits) -> tuple[dict[str, bytes], list[str]]:
+    """The manifest and the members it names of a .zip / .tar(.gz|.bz2|.xz), bounded by ``limits``,
+    and the names of the members left undecompressed."""
     head = fh.read(512)
     fh.seek(0)
     kind = _archive_kind(head)
@@ -376,12 +464,12 @@ def _read_archive(fh: IO[bytes], archive_size: int, limits: BundleLimits) -> dic
     if kind is None:
         raise BundleError("not a .zip or .tar archive (and not a bundle directory)", loc="archive")
     if kind == "zip":
-        files, problems = _read_zip(fh, archive_size, limits)
+        files, problems, skipped = _read_zip(fh, archive_size, limits)
     else:
-        files, problems = _read_tar(fh, kind, archive_size, limits)
+        files, problems, skipped = _read_tar(fh, kind, archive_size, limits)
     if problems:
         raise BundleError(problems)
-    return files
+    return files, skipped
 
 
 def _split_root(files: dict[str, bytes]) -> tuple[bytes, dict[str, bytes]]:
@@ -744,9 +832,7 @@ def load_bundle(source: str | Path | bytes, *, limits: BundleLimits | None = Non
     limits = limits or BundleLimits()
     if isinstance(source, (bytes, bytearray, memoryview)):
         data = bytes(source)
-        files = _read_archive(io.BytesIO(data), len(data), limits)
-        manifest, rest = _split_root(files)
-        return _load(manifest, _PartsSource(rest, "archive"), limits)
+        return _load_archive(io.BytesIO(data), len(data), limits)
     path = Path(source)
     if path.is_dir():
         return _load_dir(path, limits)
@@ -755,9 +841,7 @@ def load_bundle(source: str | Path | bytes, *, limits: BundleLimits | None = Non
     if not path.is_file():
         raise BundleError(f"no such bundle directory or archive: {str(path)!r}", loc="source")
     with open(path, "rb") as fh:
-        files = _read_archive(fh, path.stat().st_size, limits)
-    manifest, rest = _split_root(files)
-    return _load(manifest, _PartsSource(rest, "archive"), limits)
+        return _load_archive(fh, path.stat().st_size, limits)
 
 
 def _load_dir(root: Path, limits: BundleLimits) -> SceneBundle:
