@@ -29,7 +29,7 @@ class ShadowCorrConfig(BaseModel):
     units: Literal["m", "cm", "mm"] = "cm"
 
     # step 0: pose refinement (shadowcorr.pose_refinement)
-    refine_poses: bool = Field(False, description="register the views' full depth to each other and correct their poses first")
+    refine_poses: bool = Field(True, description="register the views' full depth to each other and correct their poses first")
     pose_point_spacing: float = Field(12.0, gt=0, description="registration point cloud: one point per cell of this size (units)")
     pose_max_rotation_deg: float = Field(5.0, gt=0, le=30, description="larger corrections are refused (the pose is kept)")
     pose_max_translation: float = Field(50.0, gt=0, description="camera centre moves beyond this are refused (units)")
