@@ -66,7 +66,8 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     )
     scene.surface = surface
     scene.poses = poses
-    scene.warnings[:0] = list(bundle.warnings) + (pose_warnings(poses) if poses else []) + depth_warnings
+    # Segments without depth first: they say the most about whether the result can be trusted.
+    scene.warnings[:0] = depth_warnings + list(bundle.warnings) + (pose_warnings(poses) if poses else [])
     return scene
 
 

@@ -53,7 +53,7 @@ def perturbed_pose(rng: np.random.Generator, pose: np.ndarray, rotation_deg: flo
     and ``translation`` (in a random direction): the worst case of a pose error bound."""
     axis, direction = rng.normal(size=3), rng.normal(size=3)
     out = pose.copy()
-    out[:3, :3] = _rotation_from_vector(axis / np.linalg.norm(axis) * np.deg2rad(rotation_deg)) @ pose[:3, :3]
+    out[:3, :3] = rotation_from_vector(axis / np.linalg.norm(axis) * np.deg2rad(rotation_deg)) @ pose[:3, :3]
     out[:3, 3] = pose[:3, 3] + direction / np.linalg.norm(direction) * translation
     return out
 

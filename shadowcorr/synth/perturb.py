@@ -24,7 +24,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..bundle import SceneBundle, View, unit_scale
-from .noise import morph_mask, noisy_depth, rotation_from_vector
+from .noise import morph_mask, noisy_depth, perturbed_pose
 
 __all__ = [
     "DEPTH_NOISE_REFERENCE_CM",
@@ -163,11 +163,6 @@ def depth_holes(bundle: SceneBundle, rng: np.random.Generator, fraction: float, 
 
 
 # --------------------------------------------------------------------------- calibration
-def _unit_vector(rng: np.random.Generator) -> np.ndarray:
-    d = rng.standard_normal(3)
-    return d / np.linalg.norm(d)
-
-
 def pose_error(bundle: SceneBundle, rng: np.random.Generator, *, rotation_deg: float = 0.0,
                translation_cm: float = 0.0) -> SceneBundle:
     """Miscalibrated extrinsics: each camera's declared pose is off by exactly the given amounts.
@@ -179,12 +174,7 @@ def pose_error(bundle: SceneBundle, rng: np.random.Generator, *, rotation_deg: f
     if rotation_deg < 0 or translation_cm < 0:
         raise ValueError("rotation_deg and translation_cm must be >= 0")
     shift = translation_cm * unit_scale("cm", bundle.units)
-    views = []
-    for v in bundle.views:
-        pose = v.pose.copy()
-        pose[:3, :3] = rotation_from_vector(np.deg2rad(rotation_deg) * _unit_vector(rng)) @ v.pose[:3, :3]
-        pose[:3, 3] = v.pose[:3, 3] + shift * _unit_vector(rng)
-        views.append(replace(v, pose=pose))
+    views = [replace(v, pose=perturbed_pose(rng, v.pose, rotation_deg, shift)) for v in bundle.views]
     return replace(bundle, views=views, warnings=list(bundle.warnings))
 
 
