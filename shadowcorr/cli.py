@@ -364,6 +364,10 @@ def _plugin_commands():
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv == ["--version"]:  # answered before the plugin commands are looked up (importlib.metadata is slow)
+        print(f"shadowcorr {__version__}")
+        return 0
     args = build_parser().parse_args(argv)
     configure_logging(args)
     try:
