@@ -3,8 +3,9 @@
     python benchmarks/bench_cli.py [--repeats 7]
 
 Each command runs ``--repeats`` times as a new process (the way a user or a script runs it);
-the table shows the median and the fastest wall time, next to a bare ``python -c pass`` for
-the interpreter's own start.  Also reports whether torch was imported (``-X importtime``).
+the table shows the median and the fastest wall time and the median CPU time (user + system,
+less sensitive than wall time to other load on the machine), next to a bare
+``python -c pass`` for the interpreter's own start.  Also reports whether torch was imported (``-X importtime``).
 Target (issue 12): ``--version`` and ``--help`` in <= 0.3 s.
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -30,13 +32,17 @@ COMMANDS = [
 ]
 
 
-def wall_times(cmd: list[str], repeats: int) -> list[float]:
-    times = []
+def run_times(cmd: list[str], repeats: int) -> tuple[list[float], list[float]]:
+    """(wall seconds, CPU seconds) of each run."""
+    walls, cpus = [], []
     for _ in range(repeats):
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         start = time.perf_counter()
         subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True)
-        times.append(time.perf_counter() - start)
-    return times
+        walls.append(time.perf_counter() - start)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpus.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
+    return walls, cpus
 
 
 def imports_torch(cmd: list[str]) -> bool:
@@ -52,10 +58,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=7)
     args = parser.parse_args()
-    print(f"{'command':<36}{'median s':>10}{'min s':>9}  torch imported")
+    print(f"{'command':<36}{'wall median s':>14}{'wall min s':>11}{'CPU median s':>13}  torch imported")
     for label, cmd in COMMANDS:
-        times = wall_times(cmd, args.repeats)
-        print(f"{label:<36}{statistics.median(times):>10.3f}{min(times):>9.3f}  {'yes' if imports_torch(cmd) else 'no'}")
+        walls, cpus = run_times(cmd, args.repeats)
+        print(f"{label:<36}{statistics.median(walls):>14.3f}{min(walls):>11.3f}{statistics.median(cpus):>13.3f}  "
+              f"{'yes' if imports_torch(cmd) else 'no'}")
 
 
 if __name__ == "__main__":

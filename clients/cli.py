@@ -13,7 +13,7 @@ from typing import Any, Sequence
 
 from .client import DEFAULT_SERVER, AsyncShadowCorrClient, RetryEvent, ShadowCorrClient
 from .dataset import LIBRARY_INSTALL, BagOptions, SceneSource, discover_scenes, parse_bag_camera
-from .errors import BundleInputError, ResponseError, ShadowCorrError
+from .errors import BundleInputError, ConnectionFailed, ResponseError, ShadowCorrError
 from .records import RecordWriter, UploadRecord, format_metrics, format_summary, read_records, summarize_records
 from .retry import RetryPolicy
 from .upload import BundleUpload
@@ -145,9 +145,12 @@ def _print_json(data: Any) -> None:
 def cmd_health(args: argparse.Namespace) -> int:
     with ShadowCorrClient(args.server, **_client_kwargs(args)) as client:
         try:
-            _print_json(client.health())
+            _print_json(client.wait_until_ready(args.wait) if args.wait > 0 else client.health())
         except ResponseError as exc:  # 503 while starting: the server's own code and message, and fail the probe
             print(f"not ready: {exc.error}: {exc.message}", file=sys.stderr)
+            return 1
+        except ConnectionFailed as exc:
+            print(f"error: {exc}", file=sys.stderr)
             return 1
     return 0
 
@@ -320,6 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
         return p
 
     p = command("health", "is the server up and ready? (exit 1 if not)")
+    p.add_argument("--wait", type=float, default=0.0, metavar="SECONDS",
+                   help="poll until the server is ready or SECONDS pass (default 0: answer at once)")
     p.set_defaults(func=cmd_health)
 
     p = command("info", "model, version and limits of the server")
