@@ -370,3 +370,23 @@ def test_camera_option_is_parsed_strictly() -> None:
     for bad in ("left", "left=/a", "=/a,/b", "left=/a,,/c", "left=/a,/b,/c,/d"):
         with pytest.raises(ValueError, match="NAME=DEPTH_TOPIC,MASK_TOPIC"):
             BagCamera.parse(bad)
+
+
+def test_client_finds_bags_and_converts_them_with_the_camera_options(tmp_path) -> None:
+    from clients import BagOptions, discover_scenes
+
+    data = tmp_path / "data"
+    write_scene_bag(data / "site" / "run_ros2", "sqlite3", [tiny_view()])
+    write_scene_bag(data / "run.bag", "ros1", [tiny_view()])
+    mcap_dir = write_scene_bag(tmp_path / "mcap_dir", "mcap", [tiny_view()])
+    (mcap_file,) = mcap_dir.glob("*.mcap")
+    (data / "site" / "single.mcap").write_bytes(mcap_file.read_bytes())  # a bare ROS 2 MCAP file
+    options = BagOptions(cameras=("front=/cam0/depth/image_raw,/cam0/instances/image_raw",))
+    scenes = discover_scenes(data, bag=options)
+    assert [(s.name, s.kind) for s in scenes] == [("run.bag", "rosbag"), ("site/run_ros2", "rosbag"),
+                                                   ("site/single.mcap", "rosbag")]
+    for scene in scenes:
+        (view,) = scene.load_bundle().views
+        assert view.name == "front" and int(view.mask.max()) == 7
+    upload = scenes[0].load()
+    assert upload.parts[0][0] == "manifest" and b'"front"' in upload.parts[0][1][1]
