@@ -390,3 +390,11 @@ def test_client_finds_bags_and_converts_them_with_the_camera_options(tmp_path) -
         assert view.name == "front" and int(view.mask.max()) == 7
     upload = scenes[0].load()
     assert upload.parts[0][0] == "manifest" and b'"front"' in upload.parts[0][1][1]
+
+
+def test_not_a_bag_is_a_clear_error(tmp_path) -> None:
+    (tmp_path / "x.bag").write_bytes(b"not a bag")
+    with pytest.raises(RosbagError, match=r"bag: cannot open '.*x.bag' as a ROS bag"):
+        load_rosbag_scene(tmp_path / "x.bag")
+    with pytest.raises(RosbagError, match=r"bag: no such bag '.*missing'"):
+        load_rosbag_scene(tmp_path / "missing")

@@ -291,8 +291,11 @@ def _open_reader(bag: Path):
                           loc="bag") from None
     if not bag.exists():
         raise RosbagError(f"no such bag {str(bag)!r}", loc="bag")
-    # Bags without embedded message definitions (old ROS 2 sqlite3) fall back to Humble's.
-    return AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    try:
+        # Bags without embedded message definitions (old ROS 2 sqlite3) fall back to Humble's.
+        return AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    except Exception as exc:  # rosbags' own errors: not a bag, an unknown storage format
+        raise RosbagError(f"cannot open {str(bag)!r} as a ROS bag: {exc}", loc="bag") from None
 
 
 def _distortion_free(info: Any) -> bool:
