@@ -8,13 +8,16 @@
         result = client.correspond("scene_bundle/", metrics=True)   # -> shadowcorr.result.Result
         print(result.labels, result.metrics)
 
-Importing this package is light: it needs ``httpx`` (and ``pydantic`` once a result is
-parsed), never torch or the server.  Packing an in-memory ``SceneBundle`` or converting
-Unreal-layout data imports the matching parts of :mod:`shadowcorr` on first use.
+Importing this package is light: it needs ``httpx`` only, never torch or the server.
+``pip install ./clients`` installs the client alone (httpx and tqdm: no torch, numpy or
+pydantic); results then come back as :class:`clients.result.ResultView`, and converting
+Unreal-layout folders or ROS bags locally says which ``pip install`` adds the library.
+With the library installed, results are :class:`shadowcorr.result.Result` and packing an
+in-memory ``SceneBundle`` or converting data imports the matching parts of :mod:`shadowcorr`.
 """
 
 from .client import DEFAULT_SERVER, DEFAULT_TIMEOUT, AsyncShadowCorrClient, RetryEvent, ShadowCorrClient
-from .dataset import SceneSource, discover_scenes
+from .dataset import BagOptions, SceneSource, discover_scenes
 from .errors import (
     BundleInputError,
     ClientError,
@@ -25,12 +28,14 @@ from .errors import (
     ShadowCorrError,
 )
 from .records import UploadRecord, read_records
+from .result import ResultView
 from .retry import NO_RETRY, RetryPolicy, parse_retry_after
 from .upload import BundleUpload, as_upload
 from .uploader import upload_scene, upload_scenes
 
 __all__ = [
     "AsyncShadowCorrClient",
+    "BagOptions",
     "BundleInputError",
     "BundleUpload",
     "ClientError",
@@ -41,6 +46,7 @@ __all__ = [
     "NO_RETRY",
     "ResponseError",
     "RetryEvent",
+    "ResultView",
     "RetryPolicy",
     "SceneSource",
     "ServerError",

@@ -1,18 +1,4 @@
-"""``shadowcorr-client``: talk to a ShadowCorr server from the shell.
-
-Commands::
-
-    shadowcorr-client health
-    shadowcorr-client info
-    shadowcorr-client correspond BUNDLE [--out RESULT.json] [--metrics] [options]
-    shadowcorr-client upload-dataset DIR --out results.jsonl [--cameras 0,2,4,6] [--concurrency 4] [--metrics]
-
-Every command takes ``--server`` (default ``$SHADOWCORR_SERVER`` or
-http://127.0.0.1:8000) and ``--token`` (default ``$SHADOWCORR_TOKEN``).
-
-Exit status: 0 success; 1 a request or a scene failed (or the server is not ready);
-2 bad usage or unusable local input; 130 interrupted.
-"""
+"""``shadowcorr-client``: talk to a ShadowCorr server from the shell (see DESCRIPTION)."""
 
 from __future__ import annotations
 
@@ -26,14 +12,26 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from .client import DEFAULT_SERVER, AsyncShadowCorrClient, RetryEvent, ShadowCorrClient
-from .dataset import SceneSource, discover_scenes
-from .errors import BundleInputError, ResponseError, ShadowCorrError
-from .records import RecordWriter, UploadRecord, format_summary, read_records, summarize_records
+from .dataset import LIBRARY_INSTALL, BagOptions, SceneSource, discover_scenes, parse_bag_camera
+from .errors import BundleInputError, ConnectionFailed, ResponseError, ShadowCorrError
+from .records import RecordWriter, UploadRecord, format_metrics, format_summary, read_records, summarize_records
 from .retry import RetryPolicy
 from .upload import BundleUpload
 from .uploader import upload_scenes
 
 __all__ = ["main", "build_parser"]
+
+DESCRIPTION = """\
+Talk to a ShadowCorr server: health, info, correspond (one scene), upload-dataset (many, resumable).
+
+Connection options (--server, default $SHADOWCORR_SERVER or http://127.0.0.1:8000; --token,
+default $SHADOWCORR_TOKEN; --timeout, --retries, ...) and -v / --log-level may come before or
+after the command.
+
+Exit status: 0 success; 1 a request or a scene failed (or the server is not ready);
+2 bad usage or unusable local input; 130 interrupted.
+"""
+LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
 def _cameras(text: str) -> list[int]:
@@ -53,23 +51,32 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _connection_parent() -> argparse.ArgumentParser:
-    # Attached to every subcommand so options can follow the command (`correspond X --server ...`).
-    p = argparse.ArgumentParser(add_help=False)
-    g = p.add_argument_group("connection")
-    g.add_argument("--server", default=os.environ.get("SHADOWCORR_SERVER") or DEFAULT_SERVER,
-                   help="server URL (env SHADOWCORR_SERVER; default %(default)s)")
-    g.add_argument("--token", default=os.environ.get("SHADOWCORR_TOKEN") or None,
+def _add_global_options(p: argparse.ArgumentParser, *, on_subcommand: bool) -> None:
+    """Connection and logging options, on the main parser and (``on_subcommand``) on every command.
+
+    On a command their default is ``SUPPRESS``, so `--server X health` and `health --server X`
+    both work and an option left out after the command never overwrites one given before it.
+    """
+    def default(value: Any) -> dict[str, Any]:
+        return {"default": argparse.SUPPRESS} if on_subcommand else {"default": value}
+
+    g = p.add_argument_group("connection and logging (before or after the command)")
+    g.add_argument("--server", **default(os.environ.get("SHADOWCORR_SERVER") or DEFAULT_SERVER),
+                   help="server URL (env SHADOWCORR_SERVER; default http://127.0.0.1:8000)")
+    g.add_argument("--token", **default(os.environ.get("SHADOWCORR_TOKEN") or None),
                    help="bearer token (prefer env SHADOWCORR_TOKEN: command lines are visible to other users)")
-    g.add_argument("--timeout", type=float, default=300.0,
-                   help="seconds to wait for an answer to one request (default %(default)s)")
-    g.add_argument("--retries", type=int, default=4,
-                   help="retries after a connection failure, 502 or 503 (default %(default)s; 0 = none)")
-    g.add_argument("--backoff", type=float, default=0.5,
-                   help="seconds before the first retry, doubling each time (default %(default)s)")
-    g.add_argument("--max-retry-after", type=float, default=60.0,
-                   help="cap on the server's Retry-After, in seconds (default %(default)s)")
-    return p
+    g.add_argument("--timeout", type=float, **default(300.0),
+                   help="seconds to wait for an answer to one request (default 300)")
+    g.add_argument("--retries", type=int, **default(4),
+                   help="retries after a connection failure, 502 or 503 (default 4; 0 = none)")
+    g.add_argument("--backoff", type=float, **default(0.5),
+                   help="seconds before the first retry, doubling each time (default 0.5)")
+    g.add_argument("--max-retry-after", type=float, **default(60.0),
+                   help="cap on the server's Retry-After, in seconds (default 60)")
+    g.add_argument("-v", "--verbose", action="store_true", **default(False),
+                   help="log retries (same as --log-level info)")
+    g.add_argument("--log-level", choices=LOG_LEVELS, type=str.lower, **default(None),
+                   help="least severe messages to log: debug, info, warning (default) or error")
 
 
 def _options_parent() -> argparse.ArgumentParser:
@@ -85,7 +92,27 @@ def _options_parent() -> argparse.ArgumentParser:
     g.add_argument("--metrics", action="store_true", help="ask for quality metrics (bundles with ground truth)")
     g.add_argument("--cameras", type=_cameras,
                    help="cameras of Unreal-layout sets, e.g. 0,2,4,6 (default: every camera present)")
+    b = p.add_argument_group("ROS bags (converted locally; the options of `shadowcorr convert rosbag`)")
+    b.add_argument("--camera", action="append", type=_bag_camera, metavar="NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC]",
+                   help="a camera of the bags (repeat for more; default: found by the NS/depth/image_raw layout)")
+    b.add_argument("--fixed-frame", default="map", help="world frame of the poses (default %(default)s)")
+    b.add_argument("--sync-tolerance", type=float, default=0.0, metavar="SECONDS",
+                   help="largest depth/mask stamp difference (default 0: exact)")
+    b.add_argument("--every", type=_positive_int, default=1, metavar="K", help="keep every K-th view of a camera")
+    b.add_argument("--max-views", type=_positive_int, metavar="N", help="at most N views per camera")
     return p
+
+
+def _bag_camera(text: str) -> str:
+    try:
+        return parse_bag_camera(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _bag_options(args: argparse.Namespace) -> BagOptions:
+    return BagOptions(cameras=tuple(args.camera or ()), fixed_frame=args.fixed_frame,
+                      sync_tolerance=args.sync_tolerance, max_views=args.max_views, every=args.every)
 
 
 def _request_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -119,9 +146,12 @@ def _print_json(data: Any) -> None:
 def cmd_health(args: argparse.Namespace) -> int:
     with ShadowCorrClient(args.server, **_client_kwargs(args)) as client:
         try:
-            _print_json(client.health())
-        except ResponseError as exc:  # 503 while starting: say so, and fail the probe
-            print(f"not ready: {exc}", file=sys.stderr)
+            _print_json(client.wait_until_ready(args.wait) if args.wait > 0 else client.health())
+        except ResponseError as exc:  # 503 while starting: the server's own code and message, and fail the probe
+            print(f"not ready: {exc.error}: {exc.message}", file=sys.stderr)
+            return 1
+        except ConnectionFailed as exc:
+            print(f"error: {exc}", file=sys.stderr)
             return 1
     return 0
 
@@ -132,8 +162,19 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _single_scene(path: str, cameras: Sequence[int] | None) -> SceneSource:
-    scenes = discover_scenes(path, cameras)
+def _discover(path: str, args: argparse.Namespace) -> list[SceneSource]:
+    """The scenes under ``path``; --cameras where nothing has Unreal cameras is an error, not ignored."""
+    scenes = discover_scenes(path, args.cameras, bag=_bag_options(args))
+    if args.cameras and not any(s.kind == "unreal" for s in scenes):
+        raise BundleInputError(f"--cameras selects cameras of Unreal-layout sets, and {path} holds none: leave "
+                               "--cameras out (a bundle's views are all sent; bags take --camera NAME=...)")
+    if args.camera and not any(s.kind == "rosbag" for s in scenes):
+        raise BundleInputError(f"--camera selects the cameras of ROS bags, and {path} holds none")
+    return scenes
+
+
+def _single_scene(path: str, args: argparse.Namespace) -> SceneSource:
+    scenes = _discover(path, args)
     if len(scenes) > 1:
         names = ", ".join(s.name for s in scenes[:5])
         raise BundleInputError(f"{path} holds {len(scenes)} scenes ({names}...); `correspond` takes one, "
@@ -147,7 +188,8 @@ def _render(scene: SceneSource, bundle: Any, result: Any, args: argparse.Namespa
         from shadowcorr.config import ShadowCorrConfig
         from shadowcorr.render import RenderConfig, render_result
     except ModuleNotFoundError as exc:
-        raise BundleInputError(f"--render needs shadowcorr.render, which this installation lacks ({exc})") from None
+        raise BundleInputError(f"--render draws with the ShadowCorr library, which is not installed "
+                               f"(no module {exc.name!r}): {LIBRARY_INSTALL}") from None
     # The renderer re-cuts the masks into segments: it must use the options the server used.
     engine: dict[str, Any] = dict(result.config or {})
     if args.no_split_components:
@@ -160,9 +202,9 @@ def _render(scene: SceneSource, bundle: Any, result: Any, args: argparse.Namespa
 
 
 def cmd_correspond(args: argparse.Namespace) -> int:
-    scene = _single_scene(args.bundle, args.cameras)
+    scene = _single_scene(args.bundle, args)
     bundle = None
-    if args.render and scene.kind == "unreal":
+    if args.render and scene.needs_conversion:
         # Convert once, and draw over exactly what was sent.
         bundle = scene.load_bundle()
         upload = BundleUpload.from_bundle(bundle, name=scene.name)
@@ -182,9 +224,7 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     print(f"{scene.name}: {len(result.segments)} segments -> {len(result.objects)} objects "
           f"in {elapsed_ms:.0f} ms; wrote {args.out}")
     if result.metrics:
-        m = result.metrics
-        print("  " + "  ".join(f"{k.replace('_', ' ')} {m[k]:.2f}" for k in
-                               ("average_purity", "rock_purity", "cluster_purity") if k in m))
+        print("  " + format_metrics(result.metrics))
     for warning in result.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     return 0
@@ -198,7 +238,7 @@ def _progress(total: int, disable: bool):
 
 
 def cmd_upload_dataset(args: argparse.Namespace) -> int:
-    scenes = discover_scenes(args.dir, args.cameras)
+    scenes = _discover(args.dir, args)
     latest, bad_lines = read_records(args.out)
     if bad_lines:
         print(f"note: skipped {bad_lines} unreadable line(s) in {args.out} (an interrupted write)", file=sys.stderr)
@@ -272,28 +312,34 @@ def cmd_upload_dataset(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="shadowcorr-client", description=__doc__,
+    parser = argparse.ArgumentParser(prog="shadowcorr-client", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("-v", "--verbose", action="store_true", help="log retries")
-    sub = parser.add_subparsers(dest="command", required=True)
-    conn, opts = _connection_parent(), _options_parent()
+    _add_global_options(parser, on_subcommand=False)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    opts = _options_parent()
 
-    p = sub.add_parser("health", parents=[conn], help="is the server up and ready? (exit 1 if not)")
+    def command(name: str, help_text: str, *parents: argparse.ArgumentParser) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, parents=list(parents), help=help_text, description=help_text[0].upper() + help_text[1:])
+        _add_global_options(p, on_subcommand=True)
+        return p
+
+    p = command("health", "is the server up and ready? (exit 1 if not)")
+    p.add_argument("--wait", type=float, default=0.0, metavar="SECONDS",
+                   help="poll until the server is ready or SECONDS pass (default 0: answer at once)")
     p.set_defaults(func=cmd_health)
 
-    p = sub.add_parser("info", parents=[conn], help="model, version and limits of the server")
+    p = command("info", "model, version and limits of the server")
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("correspond", parents=[conn, opts], help="label every segment of one scene")
-    p.add_argument("bundle", help="bundle directory or archive (or an Unreal-layout folder with one set)")
+    p = command("correspond", "label every segment of one scene", opts)
+    p.add_argument("bundle", help="bundle directory or archive, a ROS bag, or an Unreal-layout folder with one set")
     p.add_argument("--out", help="write the result JSON here (default: print it)")
     p.add_argument("--render", metavar="DIR",
-                   help="also draw the result over the views into DIR (needs shadowcorr.render; decodes the scene locally)")
+                   help="also draw the result over the views into DIR (needs the library; decodes the scene locally)")
     p.set_defaults(func=cmd_correspond)
 
-    p = sub.add_parser("upload-dataset", parents=[conn, opts],
-                       help="send every scene of a directory; results as JSON lines, resumable")
-    p.add_argument("dir", help="directory of bundle directories / archives / Unreal-layout sets (any depth)")
+    p = command("upload-dataset", "send every scene of a directory; results as JSON lines, resumable", opts)
+    p.add_argument("dir", help="directory of bundle directories / archives / Unreal-layout sets / ROS bags (any depth)")
     p.add_argument("--out", required=True, help="results file (JSON lines); scenes already 'ok' in it are skipped")
     p.add_argument("--concurrency", type=_positive_int, default=4, help="scenes in flight at once (default %(default)s)")
     p.add_argument("--limit", type=_positive_int, help="send at most this many scenes in this run")
@@ -306,10 +352,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.verbose:
+    level = args.log_level or ("info" if args.verbose else None)
+    if level:
         import logging
 
-        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+        logging.basicConfig(level=level.upper(), format="%(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

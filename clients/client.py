@@ -4,7 +4,9 @@ Both keep one ``httpx`` connection pool for their lifetime (use them as context
 managers, or call ``close``), send the bearer token when given, apply the retry
 policy of :mod:`clients.retry`, and turn every failure into a
 :class:`~clients.errors.ShadowCorrError`.  Successful ``/correspond`` answers are
-validated into :class:`shadowcorr.result.Result`, the model the library itself returns.
+validated into :class:`shadowcorr.result.Result`, the model the library itself returns,
+when the library is installed; a client installed alone returns a
+:class:`clients.result.ResultView` with the same attributes.
 
 The request/response handling lives in :class:`_Protocol`, shared by both clients, so
 the two can only differ in *how* they wait (``time.sleep`` vs ``asyncio.sleep``).
@@ -28,6 +30,8 @@ from .upload import BundleSource, BundleUpload, as_upload
 if TYPE_CHECKING:  # the Result model is imported when the first result is parsed, not with the client
     from shadowcorr.result import Result
 
+    from .result import ResultView
+
 __all__ = [
     "ShadowCorrClient",
     "AsyncShadowCorrClient",
@@ -47,12 +51,14 @@ Method = Literal["fused", "projection", "shadowcorr", "meanshift"]
 
 
 def _user_agent() -> str:
-    try:
-        from importlib.metadata import version
+    from importlib.metadata import PackageNotFoundError, version
 
-        return f"shadowcorr-client/{version('shadowcorr')}"
-    except Exception:  # not installed as a distribution (e.g. run from a source tree)
-        return "shadowcorr-client"
+    for distribution in ("shadowcorr-client", "shadowcorr"):  # installed alone, or with the library
+        try:
+            return f"shadowcorr-client/{version(distribution)}"
+        except PackageNotFoundError:
+            continue
+    return "shadowcorr-client"  # run from a source tree
 
 
 @dataclass(frozen=True)
@@ -111,10 +117,18 @@ def error_from_response(response: httpx.Response, *, attempts: int = 1) -> Respo
                attempts=attempts)
 
 
-def _parse_result(response: httpx.Response) -> "Result":
-    from pydantic import ValidationError
+def _parse_result(response: httpx.Response) -> "Result | ResultView":
+    try:
+        from shadowcorr.result import Result
+    except ModuleNotFoundError:  # the client installed alone: no library, no pydantic
+        from .result import parse_result_json
 
-    from shadowcorr.result import Result
+        try:
+            return parse_result_json(response.content)
+        except ValueError as exc:
+            raise InvalidResponse(f"the server's answer is not a ShadowCorr result: {exc}",
+                                  status=response.status_code) from None
+    from pydantic import ValidationError
 
     try:
         return Result.model_validate_json(response.content)
@@ -313,7 +327,7 @@ class ShadowCorrClient:
         method: Method | None = None,
         metrics: bool | None = None,
         timeout: float | httpx.Timeout | None = None,
-    ) -> "Result":
+    ) -> "Result | ResultView":
         """Label every segment of one scene (``POST /correspond``).
 
         ``bundle`` is a bundle directory or archive path, archive bytes, a
@@ -423,7 +437,7 @@ class AsyncShadowCorrClient:
         method: Method | None = None,
         metrics: bool | None = None,
         timeout: float | httpx.Timeout | None = None,
-    ) -> "Result":
+    ) -> "Result | ResultView":
         """Label every segment of one scene (``POST /correspond``); see :meth:`ShadowCorrClient.correspond`.
 
         Packing a ``SceneBundle`` or reading a bundle from disk runs in a thread, so the

@@ -28,10 +28,18 @@ __all__ = [
     "summarize_records",
     "format_summary",
     "SUMMARY_METRICS",
+    "format_metrics",
 ]
 
-#: Result metrics shown as mean ± std in the summary (keys of ``Result.metrics``).
-SUMMARY_METRICS = ("rock_purity", "cluster_purity", "average_purity")
+#: Result metrics shown in the summary (keys of ``Result.metrics``) -> (label, decimals).
+SUMMARY_METRICS = {"average_purity": ("average purity", 2), "rock_purity": ("rock purity", 2),
+                   "cluster_purity": ("cluster purity", 2), "voxel_ari": ("voxel ARI", 4), "coverage": ("coverage %", 1)}
+
+
+def format_metrics(metrics: Mapping[str, Any]) -> str:
+    """One line of a result's quality metrics: ``average purity 100.00  ...  voxel ARI 0.9947  coverage % 100.0``."""
+    return "  ".join(f"{label} {metrics[key]:.{digits}f}" for key, (label, digits) in SUMMARY_METRICS.items()
+                     if isinstance(metrics.get(key), (int, float)))
 
 
 @dataclass
@@ -207,6 +215,7 @@ def format_summary(s: UploadSummary) -> str:
         rows.append(("not yet sent", f"{s.pending}"))
     rows += [("latency p50", ms(s.latency_p50_ms)), ("latency p95", ms(s.latency_p95_ms))]
     for key, (mean, std, n) in s.metrics.items():
-        rows.append((key.replace("_", " "), f"{mean:6.2f} ± {std:.2f}  (n={n})"))
+        label, digits = SUMMARY_METRICS.get(key, (key.replace("_", " "), 2))
+        rows.append((label, f"{mean:.{digits}f} ± {std:.{digits}f}  (n={n})"))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

@@ -91,7 +91,9 @@ def _file_refs(node: Any, loc: str = "") -> list[tuple[str, str]]:
             refs.extend(_file_refs(value, f"{loc}.{key}" if loc else str(key)))
     elif isinstance(node, list):
         for i, value in enumerate(node):
-            refs.extend(_file_refs(value, f"{loc}[{i}]"))
+            # Views are located as the library locates them, ``views[1:cam2]``: users think in view names.
+            name = value.get("name") if loc == "views" and isinstance(value, dict) else None
+            refs.extend(_file_refs(value, f"{loc}[{i}:{name}]" if isinstance(name, str) and name else f"{loc}[{i}]"))
     return refs
 
 

@@ -10,16 +10,20 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from .server import serve
-from .settings import ServiceSettings
+from shadowcorr._lazy import lazy_exports
 
 if TYPE_CHECKING:  # pragma: no cover
     from fastapi import FastAPI
 
+    from .server import serve
+    from .settings import ServiceSettings
+
 __all__ = ["ServiceSettings", "create_app", "serve"]
+# Lazy, so that `shadowcorr --help` can list `serve` without loading pydantic-settings and uvicorn.
+__getattr__, __dir__ = lazy_exports(__name__, {"serve": "server", "ServiceSettings": "settings"}, globals())
 
 
-def create_app(settings: ServiceSettings | None = None) -> "FastAPI":
+def create_app(settings: "ServiceSettings | None" = None) -> "FastAPI":
     from .app import create_app as _create_app
 
     return _create_app(settings)

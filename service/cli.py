@@ -18,11 +18,10 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
-from pydantic import ValidationError
-
-from .settings import ServiceSettings
+if TYPE_CHECKING:
+    from .settings import ServiceSettings
 
 __all__ = ["add_serve_parser", "build_parser", "run_serve", "settings_from_args", "main"]
 
@@ -30,6 +29,8 @@ _NO_FLAG = {"auth_token"}
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
+    from .settings import ServiceSettings  # pydantic-settings: loaded only when `serve` is parsed
+
     for name, field in ServiceSettings.model_fields.items():
         if name in _NO_FLAG:
             continue
@@ -60,12 +61,14 @@ def _metavar(name: str) -> str:
 
 def add_serve_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``serve`` sub-command to an argparse ``subparsers`` object; returns its parser."""
+    # `populate`: the flags come from the settings model, so they are added the first time
+    # `serve` is parsed or its help shown -- `shadowcorr --help` never loads pydantic-settings.
     p = subparsers.add_parser(
         "serve",
         help="run the HTTP inference service",
         description="Run the ShadowCorr HTTP service (POST /correspond, GET /health, /info, /metrics).",
+        populate=_add_arguments,
     )
-    _add_arguments(p)
     p.set_defaults(func=run_serve)
     return p
 
@@ -76,8 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def settings_from_args(args: argparse.Namespace) -> ServiceSettings:
+def settings_from_args(args: argparse.Namespace) -> "ServiceSettings":
     """Environment settings with the flags that were given laid over them."""
+    from .settings import ServiceSettings
+
     overrides = {
         name: getattr(args, name)
         for name in ServiceSettings.model_fields
@@ -91,6 +96,8 @@ def settings_from_args(args: argparse.Namespace) -> ServiceSettings:
 
 def run_serve(args: argparse.Namespace) -> int:
     """Entry point of ``shadowcorr serve``; returns the exit status."""
+    from pydantic import ValidationError
+
     from .server import serve
 
     try:

@@ -45,6 +45,13 @@ __all__ = ["Runtime"]
 
 log = logging.getLogger("shadowcorr.service")
 
+#: /health status -> the message sent with ``error: not_ready`` (a failed start sends its own error).
+_NOT_READY = {
+    "failed": "the server failed to start",
+    "starting": "the server is starting: loading the model and warming up the workers",
+    "unavailable": "every worker is being replaced",
+}
+
 
 class Runtime:
     """Owns every long-lived resource of one service instance."""
@@ -145,6 +152,7 @@ class Runtime:
         self.metrics.ready.set(1 if self.ready else 0)
 
     def health(self) -> dict[str, Any]:
+        """The ``/health`` body; ``ready`` decides 200 or 503."""
         ready = self.ready
         self._update_ready()
         if self.startup_error:
@@ -165,7 +173,8 @@ class Runtime:
             "queue_depth": self.in_flight,
             "workers": {"configured": self.pool.size, "ready": self.pool.ready_count, "restarts": self.pool.restarts},
             "batcher": {"pending": self.batcher.pending, "batches": self.batcher.batches},
-            **({"error": self.startup_error} if self.startup_error else {}),
+            # While not ready, the same error shape as every other 503: clients show the code, not "http_503".
+            **({} if ready else {"error": "not_ready", "message": self.startup_error or _NOT_READY[status]}),
         }
 
     def info(self) -> dict[str, Any]:

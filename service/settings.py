@@ -81,7 +81,8 @@ class ServiceSettings(BaseSettings):
 
     # --- security and logging
     auth_token: SecretStr | None = Field(None, description="when set, every route but /health needs 'Authorization: Bearer <token>'")
-    log_level: Literal["critical", "error", "warning", "info", "debug"] = "info"
+    log_level: Literal["critical", "error", "warning", "info", "debug"] = Field(
+        "info", description="least severe log messages the server writes: critical, error, warning, info or debug")
 
     @field_validator("auth_token", mode="before")
     @classmethod

@@ -1,16 +1,83 @@
-"""The ``shadowcorr`` command line: convert, correspond, eval, synth, train, render, serve."""
+"""The ``shadowcorr`` command line: convert, correspond, eval, synth, train, render, serve.
+
+Start-up is kept light: this module imports only the standard library, each command
+imports what it needs when it runs, and the plugin subcommands (see pyproject's
+``shadowcorr.commands`` entry points) register without loading torch, so ``--version``
+and ``--help`` answer at once (``benchmarks/bench_cli.py``).
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
-import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 from ._version import __version__
+
+DESCRIPTION = """\
+ShadowCorr: which 3D segments, seen from several calibrated camera views, are the same object.
+Run `shadowcorr COMMAND --help` for the options of a command.
+
+Global options (-v, --log-level) may come before or after the command.
+"""
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+class CommandParser(argparse.ArgumentParser):
+    """An argument parser whose arguments may be added on first use.
+
+    ``populate`` (a callable taking the parser) runs the first time the parser parses
+    or prints help.  Subcommands whose options come from a heavy module (``serve``
+    builds its flags from the pydantic-settings model) use it, so that registering
+    them -- and ``shadowcorr --help`` -- stays cheap.
+    """
+
+    def __init__(self, *args: Any, populate: Callable[[argparse.ArgumentParser], None] | None = None,
+                 **kwargs: Any) -> None:
+        if populate is not None:
+            kwargs.setdefault("conflict_handler", "resolve")  # the command's own flags win over the global ones
+        super().__init__(*args, **kwargs)
+        self._populate = populate
+
+    def _ensure_populated(self) -> None:
+        if self._populate is not None:
+            populate, self._populate = self._populate, None
+            populate(self)
+
+    def parse_known_args(self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None):
+        self._ensure_populated()
+        return super().parse_known_args(args, namespace)
+
+    def format_help(self) -> str:
+        self._ensure_populated()
+        return super().format_help()
+
+
+def add_global_options(parser: argparse.ArgumentParser, *, on_subcommand: bool) -> None:
+    """-v and --log-level, on the main parser and (with ``on_subcommand``) on every subcommand.
+
+    On a subcommand their default is ``SUPPRESS``: a value given before the command
+    survives, one given after it wins, and an absent one never overwrites.
+    """
+    default: dict[str, Any] = {"default": argparse.SUPPRESS} if on_subcommand else {}
+    existing = getattr(parser, "_option_string_actions", {})
+    if "-v" not in existing and "--verbose" not in existing:
+        parser.add_argument("-v", "--verbose", action="store_true", help="log progress (same as --log-level info)",
+                            **default)
+    if "--log-level" not in existing:
+        parser.add_argument("--log-level", choices=LOG_LEVELS, type=str.lower,
+                            help="least severe messages to log: debug, info, warning (default) or error",
+                            **({"default": None} if not on_subcommand else default))
+
+
+def configure_logging(args: argparse.Namespace) -> None:
+    level = getattr(args, "log_level", None) or ("info" if getattr(args, "verbose", False) else "warning")
+    logging.basicConfig(level=level.upper(), format="%(levelname)s %(name)s: %(message)s")
 
 
 def _cameras(text: str) -> list[int]:
@@ -57,30 +124,32 @@ def _model(args: argparse.Namespace):
 
 
 # --------------------------------------------------------------------------- scenes
-_UE_DEPTH = re.compile(r"^Set(\d+)_Depth_(\d+)\.exr$")
-
-
-def ue_sets(directory: Path) -> dict[str, list[int]]:
-    """Sets (id -> cameras present) of an Unreal-layout dataset directory."""
-    sets: dict[str, list[int]] = {}
-    for f in directory.iterdir():
-        m = _UE_DEPTH.match(f.name)
-        if m and (directory / f"Set{m.group(1)}_Segment_{m.group(2)}.png").exists():
-            sets.setdefault(m.group(1), []).append(int(m.group(2)))
-    return {k: sorted(v) for k, v in sorted(sets.items())}
-
-
-def iter_scenes(source: Path, cameras: Sequence[int] | None = None) -> Iterator[tuple[str, object]]:
+def iter_scenes(source: Path, cameras: Sequence[int] | None = None) -> Iterator[tuple[str, Callable[[], Any]]]:
     """Yield (name, loader) for every scene under ``source``.
 
-    ``source`` may be a bundle directory or archive, a directory of those, or an
-    Unreal-layout dataset directory (each set becomes a scene with ``cameras``).
+    ``source`` may be a bundle directory or archive, a directory of those, an
+    Unreal-layout dataset directory (each set becomes a scene with ``cameras``), or a
+    ROS bag (cameras found by their topic layout; ``convert rosbag`` takes explicit ones).
     The loader is called lazily so a long evaluation never holds every scene at once.
+    ``cameras`` on anything but an Unreal-layout directory is an error, not ignored.
     """
-    from .convert import load_ue_scene
+    from .convert.rosbag import is_rosbag
+    from .convert.ue import load_ue_scene, ue_sets
     from .io import load_bundle
 
+    def no_cameras(what: str) -> None:
+        if cameras:
+            raise ValueError(f"--cameras selects cameras of an Unreal-layout dataset, but {str(source)!r} is {what}: "
+                             "leave --cameras out (a bundle's views are all used; convert it again to choose others)")
+
+    if is_rosbag(source):
+        from .convert.rosbag import load_rosbag_scene
+
+        no_cameras("a ROS bag")
+        yield source.name, lambda: load_rosbag_scene(source)
+        return
     if source.is_file() or (source / "manifest.json").exists():
+        no_cameras("a bundle")
         yield source.name, lambda: load_bundle(source)
         return
     if not source.is_dir():
@@ -91,13 +160,13 @@ def iter_scenes(source: Path, cameras: Sequence[int] | None = None) -> Iterator[
             cams = list(cameras) if cameras else present
             yield f"Set{set_id}", (lambda s=set_id, c=cams: load_ue_scene(source, s, c))
         return
-    found = False
-    for child in sorted(source.iterdir()):
-        if (child / "manifest.json").exists() or child.suffix in {".zip", ".tar"} or child.name.endswith(".tar.gz"):
-            found = True
-            yield child.name, (lambda c=child: load_bundle(c))
-    if not found:
+    children = [c for c in sorted(source.iterdir())
+                if (c / "manifest.json").exists() or c.suffix in {".zip", ".tar"} or c.name.endswith(".tar.gz")]
+    if not children:
         raise FileNotFoundError(f"{source}: holds no bundle, bundle archive or Unreal-layout set")
+    no_cameras("a directory of bundles")
+    for child in children:
+        yield child.name, (lambda c=child: load_bundle(c))
 
 
 # --------------------------------------------------------------------------- commands
@@ -106,6 +175,12 @@ def cmd_convert(args: argparse.Namespace) -> int:
         from .convert import convert_ue
 
         out = convert_ue(args.source, args.set, args.cameras, args.out, focal_px=args.focal_px)
+    elif args.kind == "rosbag":
+        from .convert.rosbag import convert_rosbag
+
+        out = convert_rosbag(args.source, args.out, args.camera, fixed_frame=args.fixed_frame,
+                             sync_tolerance=args.sync_tolerance, max_views=args.max_views, every=args.every,
+                             ground_truth=args.ground_truth)
     else:
         from .convert import convert_reference_npz
 
@@ -137,7 +212,9 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     return 0
 
 
-EVAL_COLUMNS = ("average_purity", "rock_purity", "cluster_purity", "voxel_ari", "perfect_one_to_one_share", "coverage")
+#: Metric key -> column header of the `eval` table (each fits its 18-character column).
+EVAL_COLUMNS = {"average_purity": "average purity", "rock_purity": "rock purity", "cluster_purity": "cluster purity",
+                "voxel_ari": "voxel ARI", "perfect_one_to_one_share": "perfect 1:1 share", "coverage": "coverage %"}
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -160,7 +237,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
             continue
         rows.append({"scene": name, **result.metrics, "total_ms": result.timings_ms["total"]})
 
-    head = f"{'scene':<24}" + "".join(f"{c.replace('_', ' ')[:16]:>18}" for c in EVAL_COLUMNS)
+    head = f"{'scene':<24}" + "".join(f"{label:>18}" for label in EVAL_COLUMNS.values())
     print(head)
     for r in rows:
         print(f"{r['scene'][:24]:<24}" + "".join(f"{r.get(c, float('nan')):>18.4f}" for c in EVAL_COLUMNS))
@@ -176,34 +253,87 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 1 if failures or not rows else 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="shadowcorr", description=__doc__)
-    parser.add_argument("--version", action="version", version=f"shadowcorr {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true")
-    sub = parser.add_subparsers(dest="command", required=True)
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
 
-    p = sub.add_parser("convert", help="convert a dataset into a scene bundle")
-    conv = p.add_subparsers(dest="kind", required=True)
-    ue = conv.add_parser("ue", help="the authors' Unreal lunar rock dataset layout")
+
+def _bag_camera(text: str):
+    from .convert.rosbag import BagCamera
+
+    try:
+        return BagCamera.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _add_convert_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("convert", help="convert a dataset into a scene bundle",
+                       description="Convert a dataset into a scene bundle directory.")
+    conv = p.add_subparsers(dest="kind", required=True, metavar="{ue,rosbag,reference-npz}")
+    ue = conv.add_parser("ue", help="the authors' Unreal lunar rock dataset layout",
+                         description="One set of the Unreal lunar rock dataset (SetNNNN_Depth_C.exr + "
+                                     "SetNNNN_Segment_C.png per camera) -> bundle in cm with instance ground truth.")
     ue.add_argument("source", help="dataset directory holding SetNNNN_Depth_C.exr and SetNNNN_Segment_C.png")
     ue.add_argument("--set", required=True, help="set id, e.g. 2001")
-    ue.add_argument("--cameras", type=_cameras, default=[0, 2, 4, 6])
+    ue.add_argument("--cameras", type=_cameras, default=[0, 2, 4, 6], help="cameras to use (default 0,2,4,6)")
     ue.add_argument("--focal-px", type=float, default=1615.0, help="focal length (the documented 960 is wrong)")
-    ue.add_argument("--out", required=True)
-    ref = conv.add_parser("reference-npz", help="the reference code's stacked-segment .npz (pickled: trusted local files only)")
-    ref.add_argument("source")
-    ref.add_argument("--out", required=True)
+    ue.add_argument("--out", required=True, help="bundle directory to write")
+    bag = conv.add_parser(
+        "rosbag", help="a ROS 1 or ROS 2 (sqlite3, MCAP) bag of depth + instance-mask images",
+        description="A bag's depth images (32FC1 metres or 16UC1 millimetres), instance masks (mono8, mono16, "
+                    "16UC1, 32SC1), CameraInfo and /tf + /tf_static -> bundle in metres. Depth and mask are paired by "
+                    "header.stamp; each pair is one view, posed by the transform from --fixed-frame to the image's "
+                    "optical frame at that stamp. Without --camera, cameras laid out as NS/depth/image_raw + "
+                    "NS/depth/camera_info + NS/instances/image_raw are found. Distorted images are refused "
+                    "(record rectified ones).")
+    bag.add_argument("source", help="ROS 2 bag directory (metadata.yaml + .db3/.mcap), or a ROS 1 .bag file")
+    bag.add_argument("--out", required=True, help="bundle directory to write")
+    bag.add_argument("--camera", action="append", type=_bag_camera, metavar="NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC]",
+                     help="one camera (repeat for more); INFO_TOPIC defaults to the camera_info beside DEPTH_TOPIC")
+    bag.add_argument("--fixed-frame", default="map", help="world frame of the poses (default %(default)s)")
+    bag.add_argument("--sync-tolerance", type=float, default=0.0, metavar="SECONDS",
+                     help="largest stamp difference between a depth image and its mask, and the furthest a "
+                          "transform is extrapolated (default 0: exact stamps)")
+    bag.add_argument("--every", type=_positive_int, default=1, metavar="K",
+                     help="keep every K-th depth+mask pair of each camera (default 1)")
+    bag.add_argument("--max-views", type=_positive_int, metavar="N",
+                     help="at most N views per camera, evenly spread over the recording")
+    bag.add_argument("--ground-truth", choices=["none", "instance"], default="none",
+                     help="'instance': mask ids are object identities in every view (enables metrics)")
+    ref = conv.add_parser("reference-npz", help="the reference code's stacked-segment .npz (pickled: trusted local files only)",
+                          description="The reference implementation's segment .npz -> bundle. It is a pickle: "
+                                      "convert only files you trust.")
+    ref.add_argument("source", help="the .npz file")
+    ref.add_argument("--out", required=True, help="bundle directory to write")
     p.set_defaults(func=cmd_convert)
 
-    p = sub.add_parser("correspond", help="label every segment of one scene")
-    p.add_argument("bundle", help="bundle directory or .zip/.tar (or an Unreal-layout directory with one set)")
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = CommandParser(prog="shadowcorr", description=DESCRIPTION,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"shadowcorr {__version__}")
+    add_global_options(parser, on_subcommand=False)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=CommandParser)
+
+    _add_convert_parser(sub)
+
+    p = sub.add_parser("correspond", help="label every segment of one scene",
+                       description="Label every segment of one scene with its object; print or write the result JSON.")
+    p.add_argument("bundle", help="bundle directory or .zip/.tar, a ROS bag, or an Unreal-layout directory with one set")
     p.add_argument("--cameras", type=_cameras, help="cameras to use from an Unreal-layout directory")
     p.add_argument("--out", help="write the result JSON here (default: print it)")
     p.add_argument("--no-metrics", action="store_true", help="skip ground-truth metrics")
     _add_method_options(p)
     p.set_defaults(func=cmd_correspond)
 
-    p = sub.add_parser("eval", help="metrics over one scene or a directory of scenes (mean ± std)")
+    p = sub.add_parser("eval", help="metrics over one scene or a directory of scenes (mean ± std)",
+                       description="Quality metrics against ground truth, per scene and as mean ± std.")
     p.add_argument("source", help="bundle, directory of bundles, or Unreal-layout dataset directory")
     p.add_argument("--cameras", type=_cameras, help="cameras to use from an Unreal-layout directory")
     p.add_argument("--json", help="also write per-scene rows and the summary as JSON")
@@ -213,7 +343,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     for command in _plugin_commands():
         command.load()(sub)
+    for subparser in _all_subparsers(sub):
+        add_global_options(subparser, on_subcommand=True)
     return parser
+
+
+def _all_subparsers(sub: argparse._SubParsersAction) -> list[argparse.ArgumentParser]:
+    """Every (nested) subcommand parser, so that global options are accepted after any command."""
+    out: list[argparse.ArgumentParser] = []
+    for parser in dict.fromkeys(sub.choices.values()):
+        out.append(parser)
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                out += _all_subparsers(action)
+    return out
 
 
 def _plugin_commands():
@@ -227,8 +370,12 @@ def _plugin_commands():
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv == ["--version"]:  # answered before the plugin commands are looked up (importlib.metadata is slow)
+        print(f"shadowcorr {__version__}")
+        return 0
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    configure_logging(args)
     try:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError) as exc:

@@ -23,3 +23,63 @@ def look_at_pose(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     pose = np.eye(4)
     pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, forward, eye
     return pose
+
+
+def quaternion_to_matrix(q) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from unit quaternions (..., 4) in ROS order ``(x, y, z, w)``.
+
+    The quaternion is normalised first: recorded ones are often off unit length by
+    float rounding, and a rotation must stay a rotation.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=-2)
+
+
+def matrix_to_quaternion(rotation) -> np.ndarray:
+    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a 3x3 rotation matrix.
+
+    Shepperd's method: the largest of the four squared components is computed first,
+    so the division is never by a small number.
+    """
+    m = np.asarray(rotation, dtype=np.float64)
+    trace = np.trace(m)
+    diag = np.diag(m)
+    k = int(np.argmax([trace, *diag]))
+    if k == 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    else:
+        i = k - 1
+        j, l = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[l, l])
+        q = [0.0, 0.0, 0.0, (m[l, j] - m[j, l]) / s]
+        q[i] = 0.25 * s
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[l] = (m[l, i] + m[i, l]) / s
+    quat = np.asarray(q)
+    return quat if quat[3] >= 0 else -quat
+
+
+def slerp(q0, q1, t: float) -> np.ndarray:
+    """Spherical linear interpolation between unit quaternions ``(x, y, z, w)`` at ``t`` in [0, 1].
+
+    Takes the short way round (``q`` and ``-q`` are the same rotation) and falls back to
+    normalised linear interpolation when the two are nearly equal.
+    """
+    a = np.asarray(q0, dtype=np.float64)
+    b = np.asarray(q1, dtype=np.float64)
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    dot = float(np.dot(a, b))
+    if dot < 0:
+        b, dot = -b, -dot
+    if dot > 0.9995:
+        out = a + t * (b - a)
+        return out / np.linalg.norm(out)
+    theta = np.arccos(min(dot, 1.0))
+    return (np.sin((1 - t) * theta) * a + np.sin(t * theta) * b) / np.sin(theta)

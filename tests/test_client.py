@@ -327,7 +327,7 @@ def test_upload_dataset_real_and_synthetic_scenes(server, dataset, tmp_path, cap
     assert len(converted.segments) == len(unreal.segments) == 77
     assert same_partition(converted.labels, unreal.labels)
     assert converted.metrics["average_purity"] > 95
-    for key in ("rock purity", "cluster purity", "average purity", "latency p50", "latency p95"):
+    for key in ("rock purity", "cluster purity", "average purity", "voxel ARI", "coverage %", "latency p50", "latency p95"):
         assert key in stdout
     assert re.search(r"^scenes\s+7$", stdout, re.M) and re.search(r"^failed\s+0$", stdout, re.M)
     print(f"upload of 7 scenes: {elapsed:.1f} s", file=sys.stderr)

@@ -212,7 +212,15 @@ def test_bundle_directory_problems_are_reported_before_sending(tmp_path):
     with pytest.raises(BundleInputError) as info:
         BundleUpload.from_path(root)
     text = str(info.value)
-    assert "views[0].depth.file" in text and "leaves the bundle" in text
+    # Located as the library locates it (view index and name), so both sides point at the same place.
+    loc = f"views[0:{manifest['views'][0]['name']}].depth.file"
+    assert f"{loc}: path '../secret.png' leaves the bundle" in text
+    from shadowcorr.errors import BundleError
+    from shadowcorr.io import load_bundle
+
+    with pytest.raises(BundleError) as library:
+        load_bundle(root)
+    assert loc in {p.loc for p in library.value.problems}
     assert "missing.png" in text and "resolves outside" in text
     with pytest.raises(BundleInputError, match="no manifest.json"):
         BundleUpload.from_path(tmp_path)

@@ -114,11 +114,22 @@ def test_convert_ue_writes_a_bundle_equal_to_the_in_memory_scene(tmp_path: Path,
     np.testing.assert_array_equal(got.depth, raw)
 
 
+@needs_ue
 def test_ue_missing_files_are_all_reported(tmp_path: Path) -> None:
+    for name in ("Set2001_Depth_2.exr", "Set2001_Segment_2.png"):  # the set exists, with camera 2 only
+        (tmp_path / name).symlink_to(UE_DIR / name)
     with pytest.raises(BundleError) as ei:
         load_ue_scene(tmp_path, 2001, (0, 9))
     locs = {p.loc for p in ei.value.problems}
     assert "views[0:cam0].mask.file" in locs and "views[1:cam9].pose" in locs
+
+
+@needs_ue
+def test_ue_mistyped_folder_and_missing_set_are_one_clear_problem(tmp_path: Path) -> None:
+    with pytest.raises(BundleError, match=r"^1 problem in bundle: dataset: '.*/no_such_dir': no such directory$"):
+        load_ue_scene(tmp_path / "no_such_dir", 2001)
+    with pytest.raises(BundleError, match=r"^1 problem in bundle: set: set 2010 is not in .*; sets present: 2001$"):
+        load_ue_scene(UE_DIR, 2010)
 
 
 # --------------------------------------------------------------------------- reference npz

@@ -277,3 +277,28 @@ def test_point_segment_bundles_get_maps_and_a_sheet(bundle, result, tmp_path):
     top = _load(tmp_path / "map_top.png")
     for k in {s.object for s in result.segments}:
         assert (np.abs(top.astype(int) - object_colour(k)).sum(axis=-1) < 120).any(), k  # every object is on the map
+
+
+def test_one_outlying_object_does_not_stretch_the_map():
+    rng = np.random.default_rng(1)
+    blob = rng.normal(size=(300, 3)) * [3.0, 3.0, 2.0]
+    centres = [[0.0, 0.0], [100.0, 100.0]] + [list(rng.uniform(0, 100, 2)) for _ in range(18)] + [[3000.0, 0.0]]
+    points = np.concatenate([blob + [cx, cy, 5.0] for cx, cy in centres])
+    point_object = np.repeat(np.arange(len(centres)), len(blob))
+    cams = np.array([[-150.0, -150, 120], [250, 250, 120]])
+    poses = np.stack([look_at(c, np.array([50.0, 50, 0])) for c in cams])
+    scene = MapScene(points=points, point_object=point_object, object_ids=np.arange(len(centres)),
+                     object_centres=np.array([[cx, cy, 5.0] for cx, cy in centres]), camera_centres=cams,
+                     camera_axes=poses[:, :3, 2], camera_names=["a", "b"], units="cm")
+    top, _ = render_maps(scene, choose_frame(poses), map_size=600)
+    a = np.asarray(top).astype(float)
+
+    def median_x(obj: int) -> float:  # pixels of the object's colour, at any shade
+        colour = np.asarray(object_colour(obj), float)
+        cosine = a @ colour / (np.linalg.norm(a, axis=-1) * np.linalg.norm(colour) + 1e-9)
+        return float(np.median(np.nonzero(cosine > 0.9995)[1]))
+
+    red_x, green_x = median_x(0), median_x(1)
+    # 100 units between them: about 600 px * 100 / (field + margins) when the outlier at x = 3000
+    # is left out of the frame; about 20 px if it stretched the map.
+    assert green_x - red_x > 300

@@ -1,6 +1,8 @@
 """Converters from third-party data to ShadowCorr bundles.
 
 ``ue``: the authors' Unreal Engine lunar-rock dataset (depth EXR + colour masks).
+``rosbag``: ROS 1 / ROS 2 bags of depth + instance-mask images, camera info and tf
+(``shadowcorr.convert.rosbag``; imported on use, it needs the ``rosbags`` package).
 ``reference_npz``: the reference implementation's pickled segment ``.npz`` -- the one
 place that unpickles, as a local, explicit action on a trusted file.
 """
@@ -18,6 +20,7 @@ from .ue import (
     load_ue_scene,
     ue_file_names,
     ue_pose_opencv,
+    ue_sets,
 )
 
 __all__ = [
@@ -32,6 +35,7 @@ __all__ = [
     "load_ue_scene",
     "ue_file_names",
     "ue_pose_opencv",
+    "ue_sets",
     "convert_reference_npz",
     "read_reference_npz",
 ]

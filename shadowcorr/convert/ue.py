@@ -23,6 +23,7 @@ Facts this module encodes (SPEC §4, checked by the tests):
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +46,7 @@ __all__ = [
     "UE_UNITS",
     "ue_pose_opencv",
     "ue_file_names",
+    "ue_sets",
     "load_ue_scene",
     "convert_ue",
 ]
@@ -139,6 +141,20 @@ def ue_file_names(set_id: int | str, camera: int) -> tuple[str, str]:
     return f"Set{set_id}_Depth_{camera}.exr", f"Set{set_id}_Segment_{camera}.png"
 
 
+_UE_DEPTH = re.compile(r"^Set(\d+)_Depth_(\d+)\.exr$")
+
+
+def ue_sets(directory: str | Path) -> dict[str, list[int]]:
+    """Sets of an Unreal-layout dataset directory: set id -> cameras with both depth and mask files."""
+    root = Path(directory)
+    sets: dict[str, list[int]] = {}
+    for f in root.iterdir():
+        m = _UE_DEPTH.match(f.name)
+        if m and (root / ue_file_names(m.group(1), int(m.group(2)))[1]).exists():
+            sets.setdefault(m.group(1), []).append(int(m.group(2)))
+    return {k: sorted(v) for k, v in sorted(sets.items())}
+
+
 def load_ue_scene(
     dataset_dir: str | Path,
     set_id: int | str,
@@ -196,6 +212,13 @@ def _read_ue_views(
     table = UE_CAMERAS if camera_table is None else camera_table
     if not cameras:
         raise BundleError("no cameras selected", loc="cameras")
+    # A mistyped folder or set is one problem, not one "missing file" per camera.
+    if not root.is_dir():
+        raise BundleError(f"{str(root)!r}: no such directory", loc="dataset")
+    sets = ue_sets(root)
+    if str(set_id) not in sets:
+        present = ", ".join(sets) or "none (no SetNNNN_Depth_C.exr with its SetNNNN_Segment_C.png)"
+        raise BundleError(f"set {set_id} is not in {str(root)!r}; sets present: {present}", loc="set")
     if len(set(cameras)) != len(cameras):
         raise BundleError(f"cameras listed twice: {list(cameras)}", loc="cameras")
     problems: list[Problem] = []

@@ -13,6 +13,11 @@ When the cameras would blow the frame up by more than ``ZOOM_AREA_RATIO`` in are
 the maps frame the objects instead: cameras outside the frame are marked at its edge,
 in their direction, and the top-down map gets an overview inset with the true camera
 positions and the zoomed frame outlined.
+
+The objects' frame is robust: an object whose centre lies far outside the others
+(beyond Tukey's fences, 1.5 interquartile ranges past the quartiles of the centres, on
+either map axis) does not stretch the map; it is labelled at the frame's edge, marked
+"(beyond)", and shown in the overview inset.
 """
 
 from __future__ import annotations
@@ -222,12 +227,39 @@ def _padded(lo: float, hi: float, pad: float) -> tuple[float, float]:
     return lo - pad, hi + pad
 
 
+def framed_points(points: np.ndarray, point_object: np.ndarray, axes: tuple[int, int]) -> np.ndarray:
+    """Which points belong to objects inside Tukey's fences of the object centres on both map ``axes``.
+
+    With fewer than four objects every point is framed (quartiles of so few say nothing).
+    The fences are widened by the median object radius, so that rocks of a tight cluster
+    are never cut off.
+    """
+    ids, inverse = np.unique(point_object, return_inverse=True)
+    if ids.size < 4:
+        return np.ones(len(points), dtype=bool)
+    keep_object = np.ones(ids.size, dtype=bool)
+    counts = np.bincount(inverse, minlength=ids.size)
+    for axis in axes:
+        coord = points[:, axis]
+        centre = np.bincount(inverse, weights=coord, minlength=ids.size) / counts
+        lo_obj = np.full(ids.size, np.inf)
+        hi_obj = np.full(ids.size, -np.inf)
+        np.minimum.at(lo_obj, inverse, coord)
+        np.maximum.at(hi_obj, inverse, coord)
+        radius = float(np.median(hi_obj - lo_obj)) / 2
+        q1, q3 = np.percentile(centre, [25, 75])
+        reach = 1.5 * (q3 - q1) + radius
+        keep_object &= (centre >= q1 - reach) & (centre <= q3 + reach)
+    return keep_object[inverse]
+
+
 def render_maps(scene: MapScene, frame: MapFrame, map_size: int = 1000) -> tuple[Image.Image, Image.Image]:
     """The top-down map and the side view (see the module docstring)."""
     r, f = frame.right, frame.forward
     pts, cams = scene.points, scene.camera_centres
     height = lambda p: frame.up_sign * p[..., frame.up]  # noqa: E731
-    objects = pts if pts.size else cams  # no point at all: frame the cameras
+    # No point at all: frame the cameras.  Otherwise the objects, less far outliers (labelled at the edge).
+    objects = pts[framed_points(pts, scene.point_object, (r, f))] if pts.size else cams
     everything = np.concatenate([pts, cams])
     ob_r, ob_f, ob_h = _extent(objects[:, r]), _extent(objects[:, f]), _extent(height(objects))
     al_r, al_f, al_h = _extent(everything[:, r]), _extent(everything[:, f]), _extent(height(everything))
@@ -410,8 +442,15 @@ def _label_objects_at(image: Image.Image, axes: Axes, scene: MapScene, h: np.nda
     """Object ids on the map at the objects' centres (nudged apart where they would overlap)."""
     lx, ly = axes.to_px(h, v)
     fnt = font(17)
-    labels = [Label((float(lx[i]), float(ly[i])), str(o), object_colour(o), fnt)
-              for i, o in enumerate(scene.object_ids.tolist()) if np.isfinite(lx[i]) and np.isfinite(ly[i])]
+    x0, y0, x1, y1 = axes.plot_box
+    labels = []
+    for i, o in enumerate(scene.object_ids.tolist()):  # one per object
+        if not (np.isfinite(lx[i]) and np.isfinite(ly[i])):
+            continue
+        x, y = float(lx[i]), float(ly[i])
+        beyond = not (x0 <= x <= x1 and y0 <= y <= y1)  # an outlier left out of the frame: at its edge
+        x, y = min(max(x, x0 + 24), x1 - 24), min(max(y, y0 + 12), y1 - 12)
+        labels.append(Label((x, y), f"{o} (beyond)" if beyond else str(o), object_colour(o), fnt))
     draw_labels(image, labels, avoid=avoid, leader=(90, 90, 90))
 
 

@@ -9,8 +9,19 @@ Importing this package does not import MuJoCo; generating does (``pip install
 pure-numpy rasteriser otherwise (identical images; see ``render``).
 """
 
-from .config import SynthConfig
-from .generate import SynthScene, generate_dataset, generate_scene, scene_seed, synthesize, write_scene
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_exports
+
+_EXPORTS = {
+    "SynthConfig": "config",
+    "SynthScene": "generate",
+    "generate_dataset": "generate",
+    "generate_scene": "generate",
+    "scene_seed": "generate",
+    "synthesize": "generate",
+    "write_scene": "generate",
+}
 
 __all__ = [
     "SynthConfig",
@@ -21,3 +32,8 @@ __all__ = [
     "synthesize",
     "write_scene",
 ]
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
+    from .config import SynthConfig
+    from .generate import SynthScene, generate_dataset, generate_scene, scene_seed, synthesize, write_scene

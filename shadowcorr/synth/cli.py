@@ -10,9 +10,10 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .config import SynthConfig
+if TYPE_CHECKING:
+    from .config import SynthConfig
 
 # flag -> SynthConfig field, for the plain scalar knobs (dest defaults to None = not given).
 _SCALARS: list[tuple[str, str, type, str]] = [
@@ -79,8 +80,10 @@ def add_synth_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     return p
 
 
-def config_from_args(args: argparse.Namespace) -> SynthConfig:
+def config_from_args(args: argparse.Namespace) -> "SynthConfig":
     """SynthConfig from ``--config`` plus the flags that were given (validated)."""
+    from .config import SynthConfig  # pydantic: loaded when the command runs, not when it is registered
+
     fields: dict[str, Any] = {}
     if getattr(args, "config", None):
         fields.update(json.loads(Path(args.config).read_text()))

@@ -5,9 +5,23 @@
 * :mod:`.trainer` - Adam loop, validation through ``assign()``, checkpoints, model export.
 """
 
-from .dataset import TrainScene, find_bundles, load_scene, prepare_scenes, save_scene
-from .losses import LossConfig, multi_objective_loss
-from .trainer import TrainConfig, Trainer, evaluate_scenes, train
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_exports
+
+_EXPORTS = {
+    "TrainScene": "dataset",
+    "find_bundles": "dataset",
+    "load_scene": "dataset",
+    "prepare_scenes": "dataset",
+    "save_scene": "dataset",
+    "LossConfig": "losses",
+    "multi_objective_loss": "losses",
+    "TrainConfig": "trainer",
+    "Trainer": "trainer",
+    "evaluate_scenes": "trainer",
+    "train": "trainer",
+}
 
 __all__ = [
     "LossConfig",
@@ -22,3 +36,9 @@ __all__ = [
     "save_scene",
     "train",
 ]
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
+    from .dataset import TrainScene, find_bundles, load_scene, prepare_scenes, save_scene
+    from .losses import LossConfig, multi_objective_loss
+    from .trainer import TrainConfig, Trainer, evaluate_scenes, train
