@@ -28,7 +28,7 @@ def _positive_int(text: str) -> int:
 
 def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``batch`` sub-command to an argparse ``subparsers`` object; returns its parser."""
-    from shadowcorr.cli import _add_method_options, _cameras
+    from shadowcorr.cli import add_method_options, parse_cameras
 
     p = subparsers.add_parser(
         "batch",
@@ -48,21 +48,21 @@ def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--actors", type=_positive_int, default=1, help="Ray: network actors, each holding the model")
     p.add_argument("--batch-size", type=_positive_int, default=8, help="Ray: prepared scenes per forward pass")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where the network runs")
-    p.add_argument("--cameras", type=_cameras, help="cameras to use from Unreal-layout sets (default: all)")
+    p.add_argument("--cameras", type=parse_cameras, help="cameras to use from Unreal-layout sets (default: all)")
     p.add_argument("--limit", type=_positive_int, help="run at most this many scenes in this run")
     p.add_argument("--no-metrics", action="store_true", help="skip ground-truth metrics")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    _add_method_options(p)
+    add_method_options(p)
     p.set_defaults(func=run_batch_command)
     return p
 
 
 def options_from_args(args: argparse.Namespace) -> BatchOptions:
-    from shadowcorr.cli import _config
+    from shadowcorr.cli import config_from_args
 
     return BatchOptions(
         engine=args.engine, workers=args.workers, ray_address=args.ray_address, actors=args.actors,
-        batch_size=args.batch_size, model_path=args.model, device=args.device, config=_config(args),
+        batch_size=args.batch_size, model_path=args.model, device=args.device, config=config_from_args(args),
         metrics=not args.no_metrics, cameras=args.cameras, limit=args.limit,
     )
 

@@ -14,9 +14,12 @@ import logging
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 from ._version import __version__
+
+if TYPE_CHECKING:  # for the annotation only: the CLI starts without pydantic
+    from .config import ShadowCorrConfig
 
 DESCRIPTION = """\
 ShadowCorr: which 3D segments, seen from several calibrated camera views, are the same object.
@@ -80,14 +83,16 @@ def configure_logging(args: argparse.Namespace) -> None:
     logging.basicConfig(level=level.upper(), format="%(levelname)s %(name)s: %(message)s")
 
 
-def _cameras(text: str) -> list[int]:
+def parse_cameras(text: str) -> list[int]:
+    """``--cameras 0,2,4,6`` -> [0, 2, 4, 6] (an argparse type)."""
     try:
         return [int(c) for c in text.split(",") if c.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"cameras must be comma-separated integers, got {text!r}") from None
 
 
-def _add_method_options(p: argparse.ArgumentParser) -> None:
+def add_method_options(p: argparse.ArgumentParser) -> None:
+    """The options that choose the method and its settings (shared by correspond, eval and batch)."""
     p.add_argument("--model", help="model file (.safetensors or reference .pth); default: the packaged model")
     p.add_argument("--method", choices=["fused", "projection", "shadowcorr", "meanshift"], default="fused",
                    help="fused (default): cross-view surface evidence and the network's volumetric evidence; "
@@ -100,7 +105,8 @@ def _add_method_options(p: argparse.ArgumentParser) -> None:
                    help="register the views' depth to each other and correct their poses first (default: the configuration's)")
 
 
-def _config(args: argparse.Namespace):
+def config_from_args(args: argparse.Namespace) -> "ShadowCorrConfig":
+    """The ``ShadowCorrConfig`` that the options of :func:`add_method_options` describe."""
     from .config import ShadowCorrConfig
 
     options: dict[str, object] = {"method": args.method}
@@ -195,7 +201,7 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     (name, load), *rest = list(iter_scenes(Path(args.bundle), args.cameras))
     if rest:
         raise SystemExit(f"{args.bundle} holds {len(rest) + 1} scenes; `correspond` takes one (use `eval` for many)")
-    result = correspond(load(), _model(args), _config(args), metrics=not args.no_metrics)
+    result = correspond(load(), _model(args), config_from_args(args), metrics=not args.no_metrics)
     text = json.dumps(result.model_dump(mode="json"), indent=1)
     if args.out:
         Path(args.out).write_text(text)
@@ -223,7 +229,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from .metrics import summarize
     from .pipeline import correspond
 
-    model, config = _model(args), _config(args)
+    model, config = _model(args), config_from_args(args)
     scenes = list(iter_scenes(Path(args.source), args.cameras))
     rows, failures = [], []
     for name, load in tqdm(scenes, desc="eval", unit="scene", disable=len(scenes) < 2 or args.quiet):
@@ -281,7 +287,7 @@ def _add_convert_parser(sub: argparse._SubParsersAction) -> None:
                                      "SetNNNN_Segment_C.png per camera) -> bundle in cm with instance ground truth.")
     ue.add_argument("source", help="dataset directory holding SetNNNN_Depth_C.exr and SetNNNN_Segment_C.png")
     ue.add_argument("--set", required=True, help="set id, e.g. 2001")
-    ue.add_argument("--cameras", type=_cameras, default=[0, 2, 4, 6], help="cameras to use (default 0,2,4,6)")
+    ue.add_argument("--cameras", type=parse_cameras, default=[0, 2, 4, 6], help="cameras to use (default 0,2,4,6)")
     ue.add_argument("--focal-px", type=float, default=1615.0, help="focal length (the documented 960 is wrong)")
     ue.add_argument("--out", required=True, help="bundle directory to write")
     bag = conv.add_parser(
@@ -326,19 +332,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("correspond", help="label every segment of one scene",
                        description="Label every segment of one scene with its object; print or write the result JSON.")
     p.add_argument("bundle", help="bundle directory or .zip/.tar, a ROS bag, or an Unreal-layout directory with one set")
-    p.add_argument("--cameras", type=_cameras, help="cameras to use from an Unreal-layout directory")
+    p.add_argument("--cameras", type=parse_cameras, help="cameras to use from an Unreal-layout directory")
     p.add_argument("--out", help="write the result JSON here (default: print it)")
     p.add_argument("--no-metrics", action="store_true", help="skip ground-truth metrics")
-    _add_method_options(p)
+    add_method_options(p)
     p.set_defaults(func=cmd_correspond)
 
     p = sub.add_parser("eval", help="metrics over one scene or a directory of scenes (mean ± std)",
                        description="Quality metrics against ground truth, per scene and as mean ± std.")
     p.add_argument("source", help="bundle, directory of bundles, or Unreal-layout dataset directory")
-    p.add_argument("--cameras", type=_cameras, help="cameras to use from an Unreal-layout directory")
+    p.add_argument("--cameras", type=parse_cameras, help="cameras to use from an Unreal-layout directory")
     p.add_argument("--json", help="also write per-scene rows and the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    _add_method_options(p)
+    add_method_options(p)
     p.set_defaults(func=cmd_eval)
 
     for command in _plugin_commands():

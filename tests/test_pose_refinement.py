@@ -9,7 +9,7 @@ import pytest
 
 from shadowcorr import ShadowCorrConfig, correspond
 from shadowcorr.bundle import Intrinsics, SceneBundle, View
-from shadowcorr.cli import build_parser, _config
+from shadowcorr.cli import build_parser, config_from_args
 from shadowcorr.convert import load_ue_scene
 from shadowcorr.pose_refinement import pose_errors, refine_poses
 from shadowcorr.poses import look_at_pose
@@ -124,9 +124,9 @@ def test_the_result_carries_the_report_and_recovers_purity(truth):
 
 def test_cli_flag_sets_the_option():
     parser = build_parser()
-    assert _config(parser.parse_args(["correspond", "x", "--refine-poses"])).refine_poses is True
-    assert _config(parser.parse_args(["correspond", "x", "--no-refine-poses"])).refine_poses is False
-    default = _config(parser.parse_args(["correspond", "x"])).refine_poses
+    assert config_from_args(parser.parse_args(["correspond", "x", "--refine-poses"])).refine_poses is True
+    assert config_from_args(parser.parse_args(["correspond", "x", "--no-refine-poses"])).refine_poses is False
+    default = config_from_args(parser.parse_args(["correspond", "x"])).refine_poses
     assert default is ShadowCorrConfig().refine_poses
 
 

@@ -37,13 +37,13 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def add_render_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``render`` on the ``shadowcorr`` command line."""
-    from ..cli import _cameras  # the same parsing and message as `correspond --cameras`
+    from ..cli import parse_cameras  # the same parsing and message as `correspond --cameras`
 
     p = subparsers.add_parser("render", help="draw a result: annotated views, top-down/side maps, contact sheet")
     p.add_argument("bundle", help="the bundle the result was computed from (directory, .zip/.tar or Unreal layout)")
     p.add_argument("result", help="result JSON written by `shadowcorr correspond --out`")
     p.add_argument("--out", required=True, help="output directory for the PNGs")
-    p.add_argument("--cameras", type=_cameras, help="cameras, for an Unreal-layout directory")
+    p.add_argument("--cameras", type=parse_cameras, help="cameras, for an Unreal-layout directory")
     p.add_argument("--low-support", type=float, default=0.6, help="outline segments with support below this (0-1)")
     p.add_argument("--alpha", type=float, default=0.5, help="opacity of the segment fills (0-1)")
     p.add_argument("--map-size", type=int, default=1000, help="map pixels across the scene's larger horizontal extent")
