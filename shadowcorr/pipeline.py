@@ -15,6 +15,7 @@ import numpy as np
 from .assignment import assign
 from .bundle import SceneBundle, unit_scale
 from .config import NETWORK_METHODS, ShadowCorrConfig
+from .errors import SceneLimitError
 from .nn import Model, load_model, run_batched
 from .result import ModelInfo, Result
 from .segments import extract_segments
@@ -39,6 +40,8 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
             "the scene has no segments: every mask is empty, or every blob is smaller than "
             f"min_blob_pixels = {config.min_blob_pixels}"
         )
+    if segments.num_segments > config.max_segments:
+        raise SceneLimitError("max_segments", segments.num_segments, config.max_segments)
     timings["segments"] = (time.perf_counter() - t0) * 1e3
     surface = None
     if config.method in ("projection", "fused"):
