@@ -269,13 +269,23 @@ def _object_summaries(scene: VoxelScene, seg_object: np.ndarray, voxel_object: n
 def voxel_truth(scene: VoxelScene) -> np.ndarray:
     """Ground-truth object per kept voxel: the object whose segments give it the most confidence.
 
-    For metrics and training targets only; never an input feature.
+    For metrics and training targets only; never an input feature.  Sparse: confidence is
+    summed per (voxel, object) pair that occurs, so the cost follows the memberships rather
+    than voxels times objects.
     """
+    if scene.num_voxels == 0:
+        return np.zeros(0, dtype=np.int64)
     truth = scene.segment_truth[scene.member_segment]
     objects, obj_idx = np.unique(truth, return_inverse=True)
-    score = np.zeros((scene.num_voxels, objects.size))
-    np.add.at(score, (scene.member_voxel, obj_idx), scene.member_confidence)
-    return objects[np.argmax(score, axis=1)] if scene.num_voxels else np.zeros(0, dtype=np.int64)
+    pair, pair_of_member = np.unique(scene.member_voxel * objects.size + obj_idx, return_inverse=True)
+    score = np.bincount(pair_of_member, weights=scene.member_confidence, minlength=pair.size)
+    voxel, obj = np.divmod(pair, objects.size)
+    # Per voxel the highest score wins; ties go to the lowest object index (as argmax did).
+    order = np.lexsort((obj, -score, voxel))
+    first = order[np.r_[True, voxel[order][1:] != voxel[order][:-1]]]
+    out = np.zeros(scene.num_voxels, dtype=np.int64)
+    out[voxel[first]] = objects[obj[first]]
+    return out
 
 
 def evaluate(scene: VoxelScene, seg_object: np.ndarray, voxel_object: np.ndarray) -> dict[str, float | int]:

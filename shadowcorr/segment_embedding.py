@@ -20,8 +20,8 @@ The denominator's domain ``D(a)`` is set by ``segment_embedding_scope``:
   only ever pushed each other apart; restricted, every component is an independent
   small problem (each with the loss averaged over its own segments) and the cost
   follows the sum of squared component sizes instead of the squared segment count.
-  Components are trained together in padded batches, one per power-of-two size bucket,
-  so the Python loop runs over buckets x steps.
+  Components are trained together in padded batches, one per power-of-two size bucket
+  (the small ones all in one), so the Python loop runs over buckets x steps.
 * ``"scene"``: every other segment of the scene (the dense original; quadratic).
 """
 
@@ -92,30 +92,40 @@ def train_segment_embeddings(cooc: np.ndarray | csr_matrix, centroids: np.ndarra
         rows = np.flatnonzero(np.diff(cooc.indptr) > 0)
         z[:] = _train_batch(z[None], w[rows].toarray()[None], rows[None], np.ones((1, z.shape[0]), bool), config)[0]
         return z.astype(np.float32)
+    pairs = w.tocoo()
+    slot = np.empty(z.shape[0], dtype=np.int64)  # a segment's problem within its bucket
+    local = np.empty(z.shape[0], dtype=np.int64)  # and its place in that problem
     for members in _component_buckets(cooc):  # (m, n) segment ids, -1 padding
         valid = members >= 0
-        idx = np.where(valid, members, 0)
-        zb = np.where(valid[..., None], z[idx], 0.0)
+        slot[:] = -1
+        slot[members[valid]] = np.nonzero(valid)[0]
+        local[members[valid]] = np.nonzero(valid)[1]
+        zb = np.where(valid[..., None], z[np.where(valid, members, 0)], 0.0)
         wb = np.zeros(members.shape + (members.shape[1],))
-        for c in range(members.shape[0]):  # one small dense block per component (no per-step loop)
-            n = int(valid[c].sum())
-            wb[c, :n, :n] = w[members[c, :n]][:, members[c, :n]].toarray()
-        local = np.broadcast_to(np.arange(members.shape[1]), members.shape)
-        zb = _train_batch(zb, wb, np.where(valid, local, -1), valid, config)
+        inside = slot[pairs.row] >= 0  # both ends of a pair lie in one component
+        a, b = pairs.row[inside], pairs.col[inside]
+        wb[slot[a], local[a], local[b]] = pairs.data[inside]
+        local_rows = np.broadcast_to(np.arange(members.shape[1]), members.shape)
+        zb = _train_batch(zb, wb, np.where(valid, local_rows, -1), valid, config)
         z[members[valid]] = zb[valid]
     return z.astype(np.float32)
 
 
+#: Components up to this size share one bucket: padding them is cheaper than more Python steps.
+_SMALLEST_BUCKET = 32
+
+
 def _component_buckets(cooc: csr_matrix) -> list[np.ndarray]:
     """Connected components of the co-occurrence graph with two or more segments, grouped by
-    size into power-of-two buckets: per bucket an (m, n) array of segment ids padded with -1."""
+    size into power-of-two buckets (all up to ``_SMALLEST_BUCKET`` in one): per bucket an
+    (m, n) array of segment ids padded with -1, n the bucket's largest component."""
     _, comp = connected_components(cooc, directed=False)
     order = np.argsort(comp, kind="stable")
     starts = np.r_[0, np.flatnonzero(np.diff(comp[order])) + 1]
     sizes = np.diff(np.r_[starts, order.size])
     keep = sizes >= 2
     starts, sizes = starts[keep], sizes[keep]
-    bucket = np.ceil(np.log2(np.maximum(sizes, 2))).astype(np.int64)
+    bucket = np.ceil(np.log2(np.maximum(sizes, _SMALLEST_BUCKET))).astype(np.int64)
     out = []
     for b in np.unique(bucket):
         pick = np.flatnonzero(bucket == b)
