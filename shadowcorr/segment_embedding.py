@@ -112,7 +112,7 @@ def train_segment_embeddings(cooc: np.ndarray | csr_matrix, centroids: np.ndarra
 
 
 #: Components up to this size share one bucket: padding them is cheaper than more Python steps.
-_SMALLEST_BUCKET = 32
+_SMALLEST_BUCKET = 8
 
 
 def _component_buckets(cooc: csr_matrix) -> list[np.ndarray]:
