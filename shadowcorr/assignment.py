@@ -227,8 +227,9 @@ def _object_summaries(scene: VoxelScene, seg_object: np.ndarray, voxel_object: n
     order = labelled[np.argsort(voxel_object[labelled], kind="stable")]
     vox_obj, pos = voxel_object[order], scene.positions[order]
     n_vox = np.bincount(vox_obj, minlength=k)
-    vox_centroid = np.stack([np.bincount(vox_obj, weights=pos[:, i], minlength=k) for i in range(3)], axis=1)
-    vox_centroid /= np.maximum(n_vox, 1)[:, None]
+    # (bincount of no voxels at all returns integers: divide, do not divide in place)
+    vox_sum = np.stack([np.bincount(vox_obj, weights=pos[:, i], minlength=k) for i in range(3)], axis=1)
+    vox_centroid = vox_sum / np.maximum(n_vox, 1)[:, None]
     vox_lo = segment_min(pos, vox_obj, k, empty=np.nan) - half
     vox_hi = segment_max(pos, vox_obj, k, empty=np.nan) + half
     seg_order = np.argsort(seg_object, kind="stable")
