@@ -1,6 +1,7 @@
 """How the default (``fused``) method's cost grows with the size of the field.
 
     python benchmarks/bench_scale.py [--copies 1,5,25,50] [--cameras 0,2,4,6] [--threads 1] [--out out]
+    python benchmarks/bench_scale.py --embedding --copies 1,5,25   # segment-id embedding scopes only
 
 Large fields are built by tiling copies of the real sample scene (examples/ue_sample) on a
 square grid: every copy keeps its own views, their poses shifted by the copy's offset, and
@@ -88,6 +89,28 @@ def run_one(copies: int, cameras: list[int], spacing: float, threads: int, data:
     }
 
 
+def compare_embedding_scopes(copies: list[int], cameras: list[int], data: str) -> None:
+    """CPU time of the segment-id embeddings, per component and whole-scene, on the sample scene's
+    co-occurrence repeated block-diagonally (what a tiled field's co-occurrence is)."""
+    from scipy.sparse import block_diag
+
+    from shadowcorr import ShadowCorrConfig, prepare
+    from shadowcorr.convert import load_ue_scene
+    from shadowcorr.segment_embedding import cooccurrence, train_segment_embeddings
+
+    scene = prepare(load_ue_scene(data, 2001, cameras))
+    cooc = cooccurrence(scene.member_voxel, scene.member_segment, scene.num_voxels, scene.num_segments)
+    centroid = np.nan_to_num(scene.segment_centroid)
+    for n in copies:
+        field = block_diag([cooc] * n).tocsr()
+        centroids = np.concatenate([centroid + [1e5 * i, 0.0, 0.0] for i in range(n)])
+        for scope in ("component", "scene"):
+            cpu0 = time.process_time()
+            train_segment_embeddings(field, centroids, ShadowCorrConfig(segment_embedding_scope=scope))
+            print(f"segment embeddings, {field.shape[0]:5d} segments, scope {scope:9s}: "
+                  f"{time.process_time() - cpu0:.2f} s CPU", flush=True)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--copies", default="1,5,25,50", help="copies of the sample scene per field")
@@ -96,9 +119,13 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (the service uses 1)")
     parser.add_argument("--data", default=str(SAMPLE))
     parser.add_argument("--out", default="out")
+    parser.add_argument("--embedding", action="store_true", help="only compare the segment-id embedding scopes")
     parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)  # child process mode
     args = parser.parse_args()
     cameras = [int(c) for c in args.cameras.split(",")]
+    if args.embedding:
+        compare_embedding_scopes([int(c) for c in args.copies.split(",")], cameras, args.data)
+        return 0
     if args.one is not None:
         print(json.dumps(run_one(args.one, cameras, args.spacing, args.threads, args.data)))
         return 0
