@@ -21,6 +21,7 @@ from .config import NETWORK_METHODS, ShadowCorrConfig
 from .grouping import SegmentGraph, agglomerate, link_components, segment_confidence
 from .metrics import segment_metrics, voxel_ari
 from .result import ModelInfo, ObjectSummary, Result, SegmentLabel
+from .shadows import segment_max, segment_min
 from .volume_evidence import volume_pairs
 from .voxel_scene import VoxelScene
 
@@ -216,16 +217,33 @@ def assign(
 
 
 def _object_summaries(scene: VoxelScene, seg_object: np.ndarray, voxel_object: np.ndarray, k: int) -> list[ObjectSummary]:
+    """Per object its segments, views, centroid and bounding box (bundle units).
+
+    One sort of the voxels by object and one of the segments: the cost follows the voxel and
+    segment counts, never objects times voxels.
+    """
     to_bundle = 1.0 / scene.unit_scale
     half = scene.config.voxel_size / 2.0
-    pos = scene.positions
-    n_vox = np.bincount(voxel_object[voxel_object >= 0], minlength=k) if voxel_object.size else np.zeros(k, int)
+    labelled = np.flatnonzero(voxel_object >= 0)
+    order = labelled[np.argsort(voxel_object[labelled], kind="stable")]
+    vox_obj, pos = voxel_object[order], scene.positions[order]
+    n_vox = np.bincount(vox_obj, minlength=k)
+    # (bincount of no voxels at all returns integers: divide, do not divide in place)
+    vox_sum = np.stack([np.bincount(vox_obj, weights=pos[:, i], minlength=k) for i in range(3)], axis=1)
+    vox_centroid = vox_sum / np.maximum(n_vox, 1)[:, None]
+    vox_lo = segment_min(pos, vox_obj, k, empty=np.nan) - half
+    vox_hi = segment_max(pos, vox_obj, k, empty=np.nan) + half
+    seg_order = np.argsort(seg_object, kind="stable")
+    segs_of = np.split(seg_order, np.cumsum(np.bincount(seg_object, minlength=k))[:-1])
+
+    def fmt(a: np.ndarray | None) -> list[float] | None:
+        return None if a is None else [round(float(x) * to_bundle, 4) for x in a]
+
     out = []
-    for obj in range(k):  # one iteration per object
-        segs = np.flatnonzero(seg_object == obj)
+    for obj in range(k):  # one iteration per object, each touching only its own segments
+        segs = segs_of[obj]
         if n_vox[obj]:
-            p = pos[voxel_object == obj]
-            centroid, lo, hi = p.mean(axis=0), p.min(axis=0) - half, p.max(axis=0) + half
+            centroid, lo, hi = vox_centroid[obj], vox_lo[obj], vox_hi[obj]
         else:
             c = scene.segment_centroid[segs]
             ok = np.all(np.isfinite(c), axis=1)
@@ -236,10 +254,6 @@ def _object_summaries(scene: VoxelScene, seg_object: np.ndarray, voxel_object: n
                 hi = np.nanmax(scene.segment_bbox_max[segs][ok], axis=0)
             else:
                 centroid = lo = hi = None
-
-        def fmt(a: np.ndarray | None) -> list[float] | None:
-            return None if a is None else [round(float(x) * to_bundle, 4) for x in a]
-
         out.append(
             ObjectSummary(
                 object=obj,
@@ -257,13 +271,23 @@ def _object_summaries(scene: VoxelScene, seg_object: np.ndarray, voxel_object: n
 def voxel_truth(scene: VoxelScene) -> np.ndarray:
     """Ground-truth object per kept voxel: the object whose segments give it the most confidence.
 
-    For metrics and training targets only; never an input feature.
+    For metrics and training targets only; never an input feature.  Sparse: confidence is
+    summed per (voxel, object) pair that occurs, so the cost follows the memberships rather
+    than voxels times objects.
     """
+    if scene.num_voxels == 0:
+        return np.zeros(0, dtype=np.int64)
     truth = scene.segment_truth[scene.member_segment]
     objects, obj_idx = np.unique(truth, return_inverse=True)
-    score = np.zeros((scene.num_voxels, objects.size))
-    np.add.at(score, (scene.member_voxel, obj_idx), scene.member_confidence)
-    return objects[np.argmax(score, axis=1)] if scene.num_voxels else np.zeros(0, dtype=np.int64)
+    pair, pair_of_member = np.unique(scene.member_voxel * objects.size + obj_idx, return_inverse=True)
+    score = np.bincount(pair_of_member, weights=scene.member_confidence, minlength=pair.size)
+    voxel, obj = np.divmod(pair, objects.size)
+    # Per voxel the highest score wins; ties go to the lowest object index (as argmax did).
+    order = np.lexsort((obj, -score, voxel))
+    first = order[np.r_[True, voxel[order][1:] != voxel[order][:-1]]]
+    out = np.zeros(scene.num_voxels, dtype=np.int64)
+    out[voxel[first]] = objects[obj[first]]
+    return out
 
 
 def evaluate(scene: VoxelScene, seg_object: np.ndarray, voxel_object: np.ndarray) -> dict[str, float | int]:

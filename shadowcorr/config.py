@@ -41,6 +41,9 @@ class ShadowCorrConfig(BaseModel):
     # segments
     split_components: bool = Field(True, description="split disconnected blobs of one mask value into segments")
     min_blob_pixels: int = Field(50, ge=0, description="blobs with fewer pixels are ignored")
+    max_segments: int = Field(5000, ge=1, description="refuse a scene with more segments (checked once they are cut)")
+    max_voxels: int = Field(2_000_000, ge=1, description="refuse a scene with more consensus voxels (checked after "
+                            "the consensus filter, before segment embeddings and the network)")
     max_depth: float = Field(2000.0, gt=0, description="depth beyond this is invalid (units)")
 
     subsample_pixels: bool = Field(True, description="back-project only every k-th pixel per axis, k as many "
@@ -78,6 +81,10 @@ class ShadowCorrConfig(BaseModel):
     segment_embedding_tau: float = Field(0.1, gt=0)
     segment_embedding_init_std: float = Field(0.5, gt=0)
     segment_embedding_weights: Literal["row_normalised", "raw"] = "row_normalised"
+    segment_embedding_scope: Literal["component", "scene"] = Field(
+        "component", description="softmax denominator over the segment's connected component of the co-occurrence "
+        "graph (linear cost) or over the whole scene (the original; quadratic in segments)"
+    )
     seed: int = 0
 
     # which method labels the segments (see METHODS)

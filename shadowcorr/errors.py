@@ -26,6 +26,7 @@ __all__ = [
     "view_loc",
     "format_loc",
     "problems_from_validation_error",
+    "SceneLimitError",
 ]
 
 
@@ -80,6 +81,19 @@ class BundleError(ValueError):
     def prefixed(self, prefix: str) -> "BundleError":
         """Same problems with ``prefix`` prepended to every loc (``prefix.loc``)."""
         return BundleError([Problem(loc=_join(prefix, p.loc), msg=p.msg) for p in self.problems])
+
+
+class SceneLimitError(ValueError):
+    """A scene exceeds one of the configured size limits (``max_segments``, ``max_voxels``).
+
+    Raised right after the measured quantity is known and before the heavy stages that
+    scale with it.  ``limit`` names the configuration field, ``value`` is what the scene
+    has and ``maximum`` what the field allows.
+    """
+
+    def __init__(self, limit: str, value: int, maximum: int) -> None:
+        self.limit, self.value, self.maximum = limit, int(value), int(maximum)
+        super().__init__(f"the scene exceeds {limit} = {self.maximum}: it has {self.value}")
 
 
 def _join(prefix: str, loc: str) -> str:

@@ -15,6 +15,7 @@ import numpy as np
 from .assignment import assign
 from .bundle import SceneBundle, unit_scale
 from .config import NETWORK_METHODS, ShadowCorrConfig
+from .errors import SceneLimitError
 from .nn import Model, load_model, run_batched
 from .pose_refinement import pose_warnings, refine_poses
 from .result import ModelInfo, Result
@@ -45,6 +46,8 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
             "the scene has no segments: every mask is empty, or every blob is smaller than "
             f"min_blob_pixels = {config.min_blob_pixels}"
         )
+    if segments.num_segments > config.max_segments:
+        raise SceneLimitError("max_segments", segments.num_segments, config.max_segments)
     depth_warnings = check_valid_depth(segments, bundle.units, config)  # DepthRangeError when nearly all are empty
     timings["segments"] = (time.perf_counter() - t0) * 1e3
     surface = None

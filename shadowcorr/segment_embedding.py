@@ -6,29 +6,46 @@ co-occur in voxels point the same way: with co-occurrence counts O (O_aa = 0),
 weights w = O normalised per row (or raw counts), and s_ab = cos(z_a, z_b) / tau,
 
     L = - mean over segments a with a partner of
-          log( sum_b w_ab exp(s_ab) / sum_{b != a} exp(s_ab) )
+          log( sum_b w_ab exp(s_ab) / sum_{b != a, b in D(a)} exp(s_ab) )
 
-minimised by full-batch Adam.  The result only says "which segments overlap with
-which" - it carries no label.  To make the outcome independent of the order in
-which segments are listed, the random initial vectors are handed out in a canonical
-order of the segments (sorted by their centroid), not in listing order.
+minimised by Adam.  The result only says "which segments overlap with which" - it
+carries no label.  To make the outcome independent of the order in which segments are
+listed, the random initial vectors are handed out in a canonical order of the segments
+(sorted by their centroid), not in listing order.
+
+The denominator's domain ``D(a)`` is set by ``segment_embedding_scope``:
+
+* ``"component"`` (default): the segments of ``a``'s connected component of the
+  co-occurrence graph.  Segments of different components never share a voxel, so they
+  only ever pushed each other apart; restricted, every component is an independent
+  small problem (each with the loss averaged over its own segments) and the cost
+  follows the sum of squared component sizes instead of the squared segment count.
+  Components are trained together in padded batches, one per power-of-two size bucket
+  (the small ones all in one), so the Python loop runs over buckets x steps.
+* ``"scene"``: every other segment of the scene (the dense original; quadratic).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.sparse import csr_matrix, issparse
+from scipy.sparse.csgraph import connected_components
 
 from .config import ShadowCorrConfig
 
+_ADAM_BETA1, _ADAM_BETA2, _ADAM_EPS = 0.9, 0.999, 1e-8
 
-def cooccurrence(voxel: np.ndarray, segment: np.ndarray, num_voxels: int, num_segments: int) -> np.ndarray:
-    """O_ab = number of voxels holding both segment a and b, with a zero diagonal."""
-    from scipy.sparse import csr_matrix
 
+def cooccurrence(voxel: np.ndarray, segment: np.ndarray, num_voxels: int, num_segments: int) -> csr_matrix:
+    """Sparse O_ab = number of voxels holding both segment a and b, with an empty diagonal.
+
+    Only pairs that share a voxel are stored, so the cost follows the voxel memberships.
+    """
     m = csr_matrix((np.ones(voxel.size), (voxel, segment)), shape=(num_voxels, num_segments))
-    o = (m.T @ m).toarray()
-    np.fill_diagonal(o, 0.0)
+    o = (m.T @ m).tocsr()
+    o.setdiag(0.0)
+    o.eliminate_zeros()
     return o
 
 
@@ -38,80 +55,164 @@ def canonical_order(centroids: np.ndarray) -> np.ndarray:
     return np.lexsort((c[:, 2], c[:, 1], c[:, 0]))
 
 
-def train_segment_embeddings(
-    cooc: np.ndarray, centroids: np.ndarray, config: ShadowCorrConfig
-) -> np.ndarray:
+def initial_vectors(centroids: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
+    """(S, dim) float64 random start vectors, handed out in canonical (centroid) order."""
+    s = centroids.shape[0]
+    gen = torch.Generator().manual_seed(config.seed)
+    init = torch.randn(s, config.segment_embedding_dim, generator=gen, dtype=torch.float64).numpy()
+    z = np.empty_like(init)
+    z[canonical_order(centroids)] = init * config.segment_embedding_init_std
+    return z
+
+
+def _weights(cooc: csr_matrix, config: ShadowCorrConfig) -> csr_matrix:
+    """The loss's pair weights w: co-occurrence counts, normalised per row unless 'raw'."""
+    w = csr_matrix(cooc, dtype=np.float64)
+    if config.segment_embedding_weights == "row_normalised":
+        total = np.asarray(w.sum(axis=1)).ravel()
+        w = csr_matrix(w.multiply(1.0 / np.maximum(total, 1e-300)[:, None]))
+    return w
+
+
+def train_segment_embeddings(cooc: np.ndarray | csr_matrix, centroids: np.ndarray, config: ShadowCorrConfig
+                             ) -> np.ndarray:
     """Learn one ``segment_embedding_dim`` vector per segment from the co-occurrence matrix.
 
-    The loss's gradient is written out (it is a pair of softmaxes over cosine
-    similarities), and Adam is applied by hand: for a few dozen segments this is several
-    times faster than autograd and avoids loading torch's optimiser machinery per request.
+    ``cooc`` may be dense or sparse (see :func:`cooccurrence`).  The loss's gradient is
+    written out (it is a pair of softmaxes over cosine similarities) and Adam is applied by
+    hand: several times faster than autograd for these small problems.  Segments without a
+    partner keep their start vector.
     """
-    s = cooc.shape[0]
-    dim = config.segment_embedding_dim
-    gen = torch.Generator().manual_seed(config.seed)
-    init = torch.randn(s, dim, generator=gen, dtype=torch.float64).numpy() * config.segment_embedding_init_std
-    z = np.empty_like(init)
-    z[canonical_order(centroids)] = init
-    rows = np.flatnonzero(cooc.sum(axis=1) > 0)
-    if s < 2 or rows.size == 0:
+    cooc = csr_matrix(cooc, dtype=np.float64) if not issparse(cooc) else cooc.tocsr()
+    z = initial_vectors(centroids, config)
+    if config.segment_embedding_steps == 0 or cooc.nnz == 0:
         return z.astype(np.float32)
-
-    weights = cooc[rows].astype(np.float64)
-    if config.segment_embedding_weights == "row_normalised":
-        weights = weights / weights.sum(axis=1, keepdims=True)
-    with np.errstate(divide="ignore"):
-        log_w = np.log(weights)  # -inf where segments never co-occur
-    self_mask = np.zeros((rows.size, s), dtype=bool)
-    self_mask[np.arange(rows.size), rows] = True
-    tau = config.segment_embedding_tau
-
-    def softmax(logits: np.ndarray) -> np.ndarray:
-        e = np.exp(logits - logits.max(axis=1, keepdims=True))
-        return e / e.sum(axis=1, keepdims=True)
-
-    beta1, beta2, eps, lr = 0.9, 0.999, 1e-8, config.segment_embedding_lr
-    m = np.zeros_like(z)
-    v = np.zeros_like(z)
-    for step in range(1, config.segment_embedding_steps + 1):
-        norm = np.maximum(np.linalg.norm(z, axis=1, keepdims=True), 1e-12)
-        unit = z / norm
-        sim = unit[rows] @ unit.T / tau
-        # dL/dsim_ab = (q_ab - p_ab) / |rows|: q over b != a, p weighted by w_ab.
-        p = softmax(sim + log_w)
-        q = softmax(np.where(self_mask, -np.inf, sim))
-        g_sim = (q - p) / rows.size
-        g_unit = np.zeros_like(unit)
-        g_unit[rows] += g_sim @ unit / tau
-        g_unit += g_sim.T @ unit[rows] / tau
-        grad = (g_unit - unit * np.sum(unit * g_unit, axis=1, keepdims=True)) / norm
-        m = beta1 * m + (1 - beta1) * grad
-        v = beta2 * v + (1 - beta2) * grad * grad
-        z = z - lr * (m / (1 - beta1**step)) / (np.sqrt(v / (1 - beta2**step)) + eps)
+    w = _weights(cooc, config)
+    if config.segment_embedding_scope == "scene":
+        rows = np.flatnonzero(np.diff(cooc.indptr) > 0)
+        z[:] = _train_batch(z[None], w[rows].toarray()[None], rows[None], np.ones((1, z.shape[0]), bool), config)[0]
+        return z.astype(np.float32)
+    pairs = w.tocoo()
+    slot = np.empty(z.shape[0], dtype=np.int64)  # a segment's problem within its bucket
+    local = np.empty(z.shape[0], dtype=np.int64)  # and its place in that problem
+    for members in _component_buckets(cooc):  # (m, n) segment ids, -1 padding
+        valid = members >= 0
+        slot[:] = -1
+        slot[members[valid]] = np.nonzero(valid)[0]
+        local[members[valid]] = np.nonzero(valid)[1]
+        zb = np.where(valid[..., None], z[np.where(valid, members, 0)], 0.0)
+        wb = np.zeros(members.shape + (members.shape[1],))
+        inside = slot[pairs.row] >= 0  # both ends of a pair lie in one component
+        a, b = pairs.row[inside], pairs.col[inside]
+        wb[slot[a], local[a], local[b]] = pairs.data[inside]
+        local_rows = np.broadcast_to(np.arange(members.shape[1]), members.shape)
+        zb = _train_batch(zb, wb, np.where(valid, local_rows, -1), valid, config)
+        z[members[valid]] = zb[valid]
     return z.astype(np.float32)
 
 
-def segment_embedding_loss(z: np.ndarray, cooc: np.ndarray, config: ShadowCorrConfig) -> float:
-    """The training loss of :func:`train_segment_embeddings` (for tests and diagnostics)."""
+#: Components up to this size share one bucket: padding them is cheaper than more Python steps.
+_SMALLEST_BUCKET = 8
+
+
+def _component_buckets(cooc: csr_matrix) -> list[np.ndarray]:
+    """Connected components of the co-occurrence graph with two or more segments, grouped by
+    size into power-of-two buckets (all up to ``_SMALLEST_BUCKET`` in one): per bucket an
+    (m, n) array of segment ids padded with -1, n the bucket's largest component."""
+    _, comp = connected_components(cooc, directed=False)
+    order = np.argsort(comp, kind="stable")
+    starts = np.r_[0, np.flatnonzero(np.diff(comp[order])) + 1]
+    sizes = np.diff(np.r_[starts, order.size])
+    keep = sizes >= 2
+    starts, sizes = starts[keep], sizes[keep]
+    bucket = np.ceil(np.log2(np.maximum(sizes, _SMALLEST_BUCKET))).astype(np.int64)
+    out = []
+    for b in np.unique(bucket):
+        pick = np.flatnonzero(bucket == b)
+        width = int(sizes[pick].max())
+        members = np.full((pick.size, width), -1, dtype=np.int64)
+        col = np.arange(width)
+        mask = col[None, :] < sizes[pick][:, None]
+        members[mask] = order[(starts[pick][:, None] + col[None, :])[mask]]
+        out.append(members)
+    return out
+
+
+def _train_batch(z: np.ndarray, weights: np.ndarray, rows: np.ndarray, valid: np.ndarray,
+                 config: ShadowCorrConfig) -> np.ndarray:
+    """Adam on a batch of independent problems.
+
+    ``z``: (m, n, dim) start vectors (zeros where padded); ``weights``: (m, r, n) pair weights
+    of the loss's rows; ``rows``: (m, r) the column of each row's own segment, -1 for a padded
+    row; ``valid``: (m, n) real segments.  Each problem's loss is averaged over its own rows.
+    """
+    tau, lr = config.segment_embedding_tau, config.segment_embedding_lr
+    row_ok = rows >= 0
+    with np.errstate(divide="ignore"):
+        log_w = np.where(row_ok[..., None], np.log(weights), 0.0)  # -inf where never co-occurring
+    own = np.zeros(weights.shape, dtype=bool)
+    mi, ri = np.nonzero(row_ok)
+    own[mi, ri, rows[mi, ri]] = True
+    # q's domain: every real segment of the problem but the row's own; padded rows see all (ignored).
+    q_mask = np.where(row_ok[..., None], valid[:, None, :] & ~own, True)
+    row_scale = (row_ok / np.maximum(row_ok.sum(axis=1, keepdims=True), 1))[..., None]
+    gather = np.where(row_ok, rows, 0)
+
+    def softmax(logits: np.ndarray) -> np.ndarray:
+        e = np.exp(logits - logits.max(axis=-1, keepdims=True))
+        return e / e.sum(axis=-1, keepdims=True)
+
+    m = np.zeros_like(z)
+    v = np.zeros_like(z)
+    batch = np.arange(z.shape[0])[:, None]
+    for step in range(1, config.segment_embedding_steps + 1):
+        norm = np.maximum(np.linalg.norm(z, axis=-1, keepdims=True), 1e-12)
+        unit = z / norm
+        unit_rows = unit[batch, gather]
+        sim = unit_rows @ unit.transpose(0, 2, 1) / tau
+        # dL/dsim_ab = (q_ab - p_ab) / rows: q over the domain, p weighted by w_ab.
+        p = softmax(sim + log_w)
+        q = softmax(np.where(q_mask, sim, -np.inf))
+        g_sim = (q - p) * row_scale
+        g_unit = g_sim.transpose(0, 2, 1) @ unit_rows / tau
+        # Each problem lists a segment in at most one row, so indexed += does not collide.
+        g_unit[mi, rows[mi, ri]] += (g_sim @ unit / tau)[mi, ri]
+        grad = (g_unit - unit * np.sum(unit * g_unit, axis=-1, keepdims=True)) / norm
+        m = _ADAM_BETA1 * m + (1 - _ADAM_BETA1) * grad
+        v = _ADAM_BETA2 * v + (1 - _ADAM_BETA2) * grad * grad
+        z = z - lr * (m / (1 - _ADAM_BETA1**step)) / (np.sqrt(v / (1 - _ADAM_BETA2**step)) + _ADAM_EPS)
+    return z
+
+
+def segment_embedding_loss(z: np.ndarray, cooc: np.ndarray | csr_matrix, config: ShadowCorrConfig) -> float:
+    """The training loss of :func:`train_segment_embeddings` (for tests and diagnostics; dense).
+
+    With scope ``"component"`` it is the mean over components of their own losses.
+    """
+    dense = cooc.toarray() if issparse(cooc) else np.asarray(cooc, dtype=np.float64)
+    s = dense.shape[0]
+    if config.segment_embedding_scope == "component":
+        _, comp = connected_components(csr_matrix(dense), directed=False)
+    else:
+        comp = np.zeros(s, dtype=np.int64)
     zt = torch.nn.functional.normalize(torch.from_numpy(np.asarray(z, dtype=np.float64)), dim=1)
-    rows = torch.from_numpy(np.flatnonzero(cooc.sum(axis=1) > 0))
-    w = torch.from_numpy(cooc.astype(np.float64))[rows]
-    if config.segment_embedding_weights == "row_normalised":
-        w = w / w.sum(dim=1, keepdim=True)
+    rows = np.flatnonzero(dense.sum(axis=1) > 0)
+    w = torch.from_numpy(_weights(csr_matrix(dense), config).toarray())[rows]
     sim = zt[rows] @ zt.T / config.segment_embedding_tau
     num = torch.logsumexp(sim + torch.where(w > 0, w.log(), torch.full_like(w, -torch.inf)), dim=1)
-    off = torch.ones_like(sim, dtype=torch.bool)
-    off[torch.arange(rows.numel()), rows] = False
-    den = torch.logsumexp(sim.masked_fill(~off, -torch.inf), dim=1)
-    return float(-(num - den).mean())
-
+    domain = torch.from_numpy(comp[rows][:, None] == comp[None, :])
+    domain[torch.arange(rows.size), torch.from_numpy(rows)] = False
+    den = torch.logsumexp(sim.masked_fill(~domain, -torch.inf), dim=1)
+    per_row = -(num - den)
+    comp_rows = torch.from_numpy(comp[rows])
+    per_comp = torch.zeros(s, dtype=torch.float64).index_add_(0, comp_rows, per_row)
+    count = torch.bincount(comp_rows, minlength=s).to(torch.float64)
+    return float((per_comp[count > 0] / count[count > 0]).mean())
 
 def voxel_embeddings(
     voxel: np.ndarray, segment: np.ndarray, num_voxels: int, segment_vectors: np.ndarray
 ) -> np.ndarray:
     """L2-normalised mean of the vectors of the segments contributing to each voxel."""
-    from scipy.sparse import csr_matrix
-
     membership = csr_matrix((np.ones(voxel.size), (voxel, segment)), shape=(num_voxels, segment_vectors.shape[0]))
     total = membership @ segment_vectors.astype(np.float64)
     count = np.bincount(voxel, minlength=num_voxels)[:, None]

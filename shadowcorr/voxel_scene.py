@@ -20,6 +20,7 @@ import numpy as np
 
 from .config import ShadowCorrConfig
 from .result import ViewPoseCorrection
+from .errors import SceneLimitError
 from .grid_keys import pack_cell_keys, unique_keys
 from .segment_embedding import cooccurrence, train_segment_embeddings, voxel_embeddings
 from .segments import Segments
@@ -107,9 +108,11 @@ def build_voxel_scene(
     member_voxel = new_id[voxel_of_member[member_kept]]
     member_segment = shadows.segment[member_kept]
     member_conf = shadows.confidence[member_kept]
+    v = int(np.count_nonzero(kept))
+    if v > config.max_voxels:
+        raise SceneLimitError("max_voxels", v, config.max_voxels)
     voxel_index = unpack(uniq[kept])[1]
     gamma = gamma_all[kept]
-    v = voxel_index.shape[0]
 
     # Segments left without a kept voxel are labelled in `assign` from their own shadow.
     orphan_member = ~np.isin(shadows.segment, np.unique(member_segment))

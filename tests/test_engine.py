@@ -166,7 +166,7 @@ def test_cooccurrence_counts_shared_voxels():
     voxel = np.array([0, 0, 1, 1, 1, 2])
     segment = np.array([0, 1, 0, 1, 2, 2])
     o = cooccurrence(voxel, segment, 3, 3)
-    assert o.tolist() == [[0, 2, 1], [2, 0, 1], [1, 1, 0]]
+    assert o.toarray().tolist() == [[0, 2, 1], [2, 0, 1], [1, 1, 0]]
 
 
 def test_every_segment_is_labelled_even_without_voxels(model):

@@ -172,8 +172,8 @@ def knn_on_grid(
     (squared distance, row) - an exact integer key, so the order is the same as the
     brute force.  The result is exact whenever the k-th neighbour found lies inside the
     ball (everything outside is strictly farther); the few voxels where it does not
-    (isolated voxels, scenes smaller than ``k``) fall back to the brute force over
-    their scene.  So the output is identical to ``knn_within_scene(voxel_index, ...)``
+    (isolated voxels, scenes smaller than ``k``) try balls of 4 and 16 times the squared
+    radius, then fall back to the brute force over their scene.  So the output is identical to ``knn_within_scene(voxel_index, ...)``
     and, since uniform scaling keeps the distance order, to the k-NN of the positions
     ``voxel_index * voxel_size``.
 
@@ -187,8 +187,6 @@ def knn_on_grid(
     _check_inputs(voxel_index, batch, k)
     if voxel_index.dtype.is_floating_point:
         raise ValueError("voxel_index must be an integer tensor")
-    from .sparse_conv import VoxelHash  # local: sparse_conv is the lower layer
-
     n, device = voxel_index.shape[0], voxel_index.device
     coords = voxel_index.to(torch.int64)
     batch = batch.to(torch.int64)
@@ -196,6 +194,26 @@ def knn_on_grid(
     valid = torch.ones((n, k), dtype=torch.bool, device=device)
     if n == 0:
         return (out, valid) if return_valid else out
+    # Voxels whose k-th neighbour lies outside the ball try balls of 4x and 16x the squared
+    # radius before the brute force: the brute force costs a whole scene per voxel, so with
+    # many isolated voxels in a large scene it alone would grow with voxels squared.
+    rows = torch.arange(n, device=device)
+    for ball_sq in (radius_sq, 4 * radius_sq, 16 * radius_sq):
+        if rows.numel() == 0:
+            break
+        rows = _knn_in_ball(coords, batch, k, ball_sq, rows, out)
+    if rows.numel():
+        out[rows], valid[rows] = _brute_force_rows(coords.to(torch.float64), batch, k, rows)
+    return (out, valid) if return_valid else out
+
+
+def _knn_in_ball(coords: torch.Tensor, batch: torch.Tensor, k: int, radius_sq: int, rows: torch.Tensor,
+                 out: torch.Tensor) -> torch.Tensor:
+    """Write the k-NN of ``rows`` found inside a ball of squared radius ``radius_sq`` into ``out``;
+    returns the rows for which the ball was too small (their k-th neighbour may lie outside)."""
+    from .sparse_conv import VoxelHash  # local: sparse_conv is the lower layer
+
+    n, device = coords.shape[0], coords.device
     offsets, d2 = _ball_offsets(radius_sq, device)
     table = VoxelHash(coords, batch, reach=math.isqrt(radius_sq))
     kk = min(k, offsets.shape[0])
@@ -205,19 +223,16 @@ def knn_on_grid(
     d2n = (d2 * n).unsqueeze(1)
     failed = []
     block = max(1, _KNN_BLOCK // offsets.shape[0])
-    for r0 in range(0, n, block):
-        r1 = min(n, r0 + block)
-        nb = table.offset_lookup(offsets, slice(r0, r1))  # (M, rows)
+    for r0 in range(0, rows.numel(), block):
+        sel = rows[r0 : r0 + block]
+        nb = table.offset_lookup(offsets, sel)  # (M, rows)
         key = torch.where(nb >= 0, d2n + nb, miss_key)
         best = torch.topk(key, kk, dim=0, largest=False, sorted=True).values.T  # (rows, kk)
-        out[r0:r1, :kk] = best % n
+        out[sel, :kk] = best % n
         # Exact iff the k-th key is a hit inside the ball.
-        ok = best[:, -1] < miss_key if kk == k else torch.zeros(r1 - r0, dtype=torch.bool, device=device)
-        failed.append(torch.nonzero(~ok).squeeze(1) + r0)
-    rows = torch.cat(failed)
-    if rows.numel():
-        out[rows], valid[rows] = _brute_force_rows(coords.to(torch.float64), batch, k, rows)
-    return (out, valid) if return_valid else out
+        ok = best[:, -1] < miss_key if kk == k else torch.zeros(sel.numel(), dtype=torch.bool, device=device)
+        failed.append(sel[~ok])
+    return torch.cat(failed)
 
 
 class LocalAttention(nn.Module):

@@ -1,0 +1,182 @@
+"""How the default (``fused``) method's cost grows with the size of the field.
+
+    python benchmarks/bench_scale.py [--copies 1,5,25,50] [--cameras 0,2,4,6] [--threads 1] [--out out]
+    python benchmarks/bench_scale.py --embedding --copies 1,5,25   # segment-id embedding scopes only
+
+Large fields are built by tiling copies of the real sample scene (examples/ue_sample) on a
+square grid: every copy keeps its own views, their poses shifted by the copy's offset, and
+its mask ids shifted so that each copy's rocks are distinct objects.  Copies lie
+``--spacing`` apart (default 1 km), far enough that no copy's views see another copy's
+rocks, so the ideal result is the single scene's, repeated.
+
+Each field size runs in a fresh process (clean peak memory) with ``torch.set_num_threads``
+as in the service (1 by default).  Printed per size: rocks, views, segments, objects found,
+wall time per stage (``result.timings_ms``), the CPU time of the whole call (less
+sensitive than wall time to other work on a shared machine), peak resident memory of the process (and
+of the decoded input alone), and the average purity next to the single scene's.  At the
+end: the growth exponent (least-squares slope of log total time against log rocks, wall and CPU) and a
+log-log plot ``scale.png`` under ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "ue_sample"  # ships with the repository
+
+
+def tile_scene(base, copies: int, spacing: float):
+    """``copies`` copies of ``base`` on a square grid ``spacing`` (bundle units) apart, as one bundle."""
+    from shadowcorr import SceneBundle, View
+
+    side = math.ceil(math.sqrt(copies))
+    id_stride = 1 + max(int(v.mask.max()) for v in base.views)
+    views = []
+    for c in range(copies):
+        offset = np.array([(c % side) * spacing, (c // side) * spacing, 0.0])
+        for v in base.views:
+            pose = v.pose.copy()
+            pose[:3, 3] += offset
+            mask = np.where(v.mask > 0, v.mask + c * id_stride, 0).astype(np.int32)
+            views.append(View(name=f"tile{c}_{v.name}", pose=pose, intrinsics=v.intrinsics,
+                              depth=v.depth.copy(), mask=mask))
+    return SceneBundle(units=base.units, views=views, name=f"{base.name}_x{copies}", ground_truth=base.ground_truth)
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+
+
+def run_one(copies: int, cameras: list[int], spacing: float, threads: int, data: str) -> dict:
+    """Label one tiled field in this process; returns its figures."""
+    import torch
+
+    from shadowcorr import correspond, load_model
+    from shadowcorr.convert import load_ue_scene
+
+    torch.set_num_threads(threads)
+    model = load_model()
+    base = load_ue_scene(data, 2001, cameras)
+    correspond(base, model)  # warm-up: lazy imports and first-call allocations
+    bundle = tile_scene(base, copies, spacing)
+    input_mb = sum(v.depth.nbytes + v.mask.nbytes for v in bundle.views) / 2**20
+    before = _peak_rss_mb()
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    result = correspond(bundle, model, metrics=True)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    return {
+        "copies": copies,
+        "rocks": int(len({int(i) for v in bundle.views for i in np.unique(v.mask) if i > 0})),
+        "views": len(bundle.views),
+        "segments": len(result.segments),
+        "objects": len(result.objects),
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "stages_ms": result.timings_ms,
+        "peak_rss_mb": _peak_rss_mb(),
+        "rss_before_mb": before,
+        "input_mb": input_mb,
+        "average_purity": result.metrics["average_purity"],
+    }
+
+
+def compare_embedding_scopes(copies: list[int], cameras: list[int], data: str) -> None:
+    """CPU time of the segment-id embeddings, per component and whole-scene, on the sample scene's
+    co-occurrence repeated block-diagonally (what a tiled field's co-occurrence is)."""
+    from scipy.sparse import block_diag
+
+    from shadowcorr import ShadowCorrConfig, prepare
+    from shadowcorr.convert import load_ue_scene
+    from shadowcorr.segment_embedding import cooccurrence, train_segment_embeddings
+
+    scene = prepare(load_ue_scene(data, 2001, cameras))
+    cooc = cooccurrence(scene.member_voxel, scene.member_segment, scene.num_voxels, scene.num_segments)
+    centroid = np.nan_to_num(scene.segment_centroid)
+    for n in copies:
+        field = block_diag([cooc] * n).tocsr()
+        centroids = np.concatenate([centroid + [1e5 * i, 0.0, 0.0] for i in range(n)])
+        for scope in ("component", "scene"):
+            cpu0 = time.process_time()
+            train_segment_embeddings(field, centroids, ShadowCorrConfig(segment_embedding_scope=scope))
+            print(f"segment embeddings, {field.shape[0]:5d} segments, scope {scope:9s}: "
+                  f"{time.process_time() - cpu0:.2f} s CPU", flush=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--copies", default="1,5,25,50", help="copies of the sample scene per field")
+    parser.add_argument("--cameras", default="0,2,4,6")
+    parser.add_argument("--spacing", type=float, default=100000.0, help="distance between copies (bundle units)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (the service uses 1)")
+    parser.add_argument("--data", default=str(SAMPLE))
+    parser.add_argument("--out", default="out")
+    parser.add_argument("--embedding", action="store_true", help="only compare the segment-id embedding scopes")
+    parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)  # child process mode
+    args = parser.parse_args()
+    cameras = [int(c) for c in args.cameras.split(",")]
+    if args.embedding:
+        compare_embedding_scopes([int(c) for c in args.copies.split(",")], cameras, args.data)
+        return 0
+    if args.one is not None:
+        print(json.dumps(run_one(args.one, cameras, args.spacing, args.threads, args.data)))
+        return 0
+
+    rows = []
+    for copies in [int(c) for c in args.copies.split(",")]:
+        cmd = [sys.executable, __file__, "--one", str(copies), "--cameras", args.cameras, "--spacing",
+               str(args.spacing), "--threads", str(args.threads), "--data", args.data]
+        out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+        row = json.loads(out.strip().splitlines()[-1])
+        rows.append(row)
+        stages = ", ".join(f"{k} {v / 1e3:.2f}" for k, v in row["stages_ms"].items() if k != "total")
+        print(f"{row['rocks']:5d} rocks {row['views']:4d} views {row['segments']:5d} segments {row['objects']:4d} objects: "
+              f"{row['wall_s']:7.2f} s wall ({row['cpu_s']:.2f} s CPU), peak RSS {row['peak_rss_mb']:7.0f} MB (input {row['input_mb']:.0f} MB, "
+              f"before labelling {row['rss_before_mb']:.0f} MB), purity {row['average_purity']:.4f}  [{stages} s]",
+              flush=True)
+
+    single = next((r["average_purity"] for r in rows if r["copies"] == 1), None)
+    if single is not None:
+        worst = min(r["average_purity"] for r in rows)
+        print(f"quality: single scene {single:.4f}, lowest tiled {worst:.4f}")
+    if len(rows) >= 2:
+        x = np.log([r["rocks"] for r in rows])
+        slope, intercept = np.polyfit(x, np.log([r["wall_s"] for r in rows]), 1)
+        cpu_slope = np.polyfit(x, np.log([r["cpu_s"] for r in rows]), 1)[0]
+        print(f"growth exponent (log total time vs log rocks): wall {slope:.3f}, CPU {cpu_slope:.3f}")
+        _plot(rows, slope, intercept, Path(args.out) / "scale.png")
+    return 0
+
+
+def _plot(rows: list[dict], slope: float, intercept: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rocks = np.array([r["rocks"] for r in rows], dtype=float)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.loglog(rocks, [r["wall_s"] for r in rows], "o-", label="total")
+    for stage in ("segments", "surface_evidence", "shells", "shadows", "segment_embedding", "network", "grouping"):
+        ax.loglog(rocks, [max(r["stages_ms"].get(stage, 0.0), 1e-3) / 1e3 for r in rows], ".--", label=stage)
+    ax.loglog(rocks, np.exp(intercept) * rocks**slope, ":", color="k", label=f"fit: rocks^{slope:.2f}")
+    ax.set_xlabel("rocks (tiled copies of the sample scene)")
+    ax.set_ylabel("seconds")
+    ax.legend(fontsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"plot: {path}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
