@@ -29,11 +29,11 @@ from shadowcorr.errors import BundleError
 from shadowcorr.io import load_bundle, load_bundle_from_parts
 from shadowcorr.pipeline import assign, baseline_embeddings, prepare
 from shadowcorr.result import ModelInfo
-from shadowcorr.segments import DepthRangeError
+from shadowcorr.errors import DepthRangeError, SceneLimitError
 from shadowcorr.voxel_scene import VoxelScene
 
 from .errors import JobError
-from .limits import RequestLimits, Upload, check_instances, check_segment_count
+from .limits import RequestLimits, Upload, check_instances
 from .multipart import BodyError, content_kind, parse_body
 from .synthetic import synthetic_bundle
 
@@ -135,6 +135,9 @@ def _guarded(what: str, fn, *args):
         return fn(*args)
     except JobError:
         raise
+    except SceneLimitError as e:  # too many segments or voxels: refused before the heavy stages
+        code = {"max_segments": "too_many_segments", "max_voxels": "too_many_voxels"}.get(e.limit, "scene_too_large")
+        raise JobError(413, code, str(e), [{"loc": "scene", "msg": str(e)}]) from None
     except DepthRangeError as e:  # nearly every segment lost its depth: wrong units or max_depth
         raise JobError(422, "no_valid_depth", str(e), [{"loc": "manifest.units", "msg": str(e)}]) from None
     except MemoryError:
@@ -151,8 +154,8 @@ def _decode_and_prepare(upload: Upload, content_type: str, config: ShadowCorrCon
     bundle = _load(upload, content_type, limits)
     check_instances(bundle, limits, config.min_blob_pixels)
     t1 = time.perf_counter()
-    scene = prepare(bundle, config)
-    check_segment_count(scene.num_segments, limits.max_segments)
+    # The library checks the segment count right after cutting, before any heavy stage.
+    scene = prepare(bundle, config.with_options(max_segments=min(config.max_segments, limits.max_segments)))
     t2 = time.perf_counter()
     return Prepared(scene=scene, decode_ms=(t1 - t0) * 1e3, prepare_ms=(t2 - t1) * 1e3)
 

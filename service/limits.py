@@ -32,7 +32,7 @@ from shadowcorr.io import BundleLimits
 from .errors import ApiError, JobError
 from .settings import ServiceSettings
 
-__all__ = ["RequestLimits", "ByteBudget", "Upload", "UploadRules", "receive_body", "check_instances", "check_segment_count"]
+__all__ = ["RequestLimits", "ByteBudget", "Upload", "UploadRules", "receive_body", "check_instances"]
 
 # Masks with ids below this are counted with bincount (fast); larger ids need np.unique.
 _BINCOUNT_MAX_ID = 1 << 20
@@ -314,23 +314,4 @@ def check_instances(bundle: SceneBundle, limits: RequestLimits, min_blob_pixels:
             "no_segments",
             f"the scene has no segments: {why}",
             [{"loc": "views", "msg": why}],
-        )
-
-
-def check_segment_count(num_segments: int, max_segments: int) -> None:
-    """The exact check after ``prepare``: too many segments (413) or none at all (422)."""
-    if num_segments > max_segments:
-        raise JobError(
-            413,
-            "too_many_segments",
-            f"the scene has {num_segments} segments; the limit is {max_segments}",
-            [{"loc": "views", "msg": f"{num_segments} segments > {max_segments}"}],
-        )
-    if num_segments == 0:
-        raise JobError(
-            422,
-            "no_segments",
-            "the scene has no segments: every mask is empty, or every blob is smaller than min_blob_pixels "
-            "or has no valid depth",
-            [{"loc": "views", "msg": "no segment with valid depth in any view"}],
         )

@@ -27,6 +27,7 @@ _EXPORTS = {
     "BundleError": "errors",
     "Problem": "errors",
     "SceneLimitError": "errors",
+    "DepthRangeError": "errors",
     "Manifest": "bundle",
     "PointSegments": "bundle",
     "SceneBundle": "bundle",
@@ -61,7 +62,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from .assignment import assign
     from .bundle import Manifest, PointSegments, SceneBundle, View
     from .config import REQUEST_OPTIONS, ShadowCorrConfig
-    from .errors import BundleError, Problem, SceneLimitError
+    from .errors import BundleError, DepthRangeError, Problem, SceneLimitError
     from .io import BundleLimits, load_bundle, load_bundle_from_parts, write_bundle, write_bundle_archive
     from .nn import Model, ModelCard, load_model, save_model
     from .pipeline import correspond, embed, prepare

@@ -83,6 +83,15 @@ class BundleError(ValueError):
         return BundleError([Problem(loc=_join(prefix, p.loc), msg=p.msg) for p in self.problems])
 
 
+class DepthRangeError(ValueError):
+    """Nearly every segment of a scene has no valid depth point (wrong ``units``, or ``max_depth`` too small).
+
+    Such a scene would come out as "one object per segment" with nothing to match, which
+    looks like a result but is not one; callers (the CLI, the HTTP service) report it as
+    bad input.
+    """
+
+
 class SceneLimitError(ValueError):
     """A scene exceeds one of the configured size limits (``max_segments``, ``max_voxels``).
 

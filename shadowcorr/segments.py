@@ -20,6 +20,7 @@ from scipy import ndimage
 
 from .bundle import SceneBundle, View, unit_scale
 from .config import ShadowCorrConfig
+from .errors import DepthRangeError
 
 _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
@@ -235,15 +236,6 @@ def _from_point_segments(bundle: SceneBundle, scale: float) -> Segments:
 
 #: Share of segments without a valid point at which a scene is refused rather than labelled.
 MAX_EMPTY_SEGMENT_SHARE = 0.9
-
-
-class DepthRangeError(ValueError):
-    """Nearly every segment of a scene has no valid depth point (wrong ``units``, or ``max_depth`` too small).
-
-    Such a scene would come out as "one object per segment" with nothing to match, which
-    looks like a result but is not one; callers (the CLI, the HTTP service) report it as
-    bad input.
-    """
 
 
 def check_valid_depth(segments: Segments, bundle_units: str, config: ShadowCorrConfig) -> list[str]:

@@ -10,7 +10,7 @@ import pytest
 from shadowcorr import correspond
 from shadowcorr.config import ShadowCorrConfig
 from shadowcorr.pipeline import prepare
-from shadowcorr.segments import DepthRangeError
+from shadowcorr.errors import DepthRangeError
 
 from service.synthetic import synthetic_bundle
 

@@ -9,7 +9,8 @@ import pytest
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle, View
 from shadowcorr.segment_embedding import cooccurrence, segment_embedding_loss, train_segment_embeddings
-from shadowcorr.segments import DepthRangeError, extract_segments
+from shadowcorr.errors import DepthRangeError
+from shadowcorr.segments import extract_segments
 from shadowcorr.shadows import beta_profile, cast_shadows, segment_shells, voxel_downsample
 
 from .paths import REFERENCE_CHECKPOINT as REFERENCE
