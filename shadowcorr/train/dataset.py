@@ -169,6 +169,16 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
+def training_pipeline() -> ShadowCorrConfig:
+    """The pipeline configuration scenes are prepared with for training.
+
+    The network learns from the volumetric stages alone: the cross-view surface evidence
+    (method ``fused``) is not an input of it, and synthetic training scenes have exact
+    poses; validation clusters the network's embeddings as the paper does (``shadowcorr``).
+    """
+    return ShadowCorrConfig(method="shadowcorr", refine_poses=False)
+
+
 def prepare_scenes(
     bundles: Sequence[str | Path],
     config: ShadowCorrConfig | None = None,
@@ -187,7 +197,7 @@ def prepare_scenes(
     """
     from tqdm import tqdm
 
-    config = config or ShadowCorrConfig()
+    config = config or training_pipeline()
     cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     paths = [cache_path(b, config, cache) for b in bundles]
     todo = [(str(b), config.model_dump_json(), str(p)) for b, p in zip(bundles, paths) if not p.is_file()]

@@ -43,7 +43,7 @@ from ..config import ShadowCorrConfig
 from ..metrics import summarize
 from ..nn import ModelCard, NetConfig, ShadowCorrNet, load_model, save_model
 from ..nn.checkpoint import REFERENCE_FEATURES
-from .dataset import TrainScene, find_bundles, prepare_scenes
+from .dataset import TrainScene, find_bundles, prepare_scenes, training_pipeline
 from .losses import LossConfig, graph_neighbours, multi_objective_loss
 
 __all__ = ["TrainConfig", "Trainer", "train", "evaluate_scenes", "init_from_model", "CHECKPOINT_FORMAT"]
@@ -77,7 +77,7 @@ class TrainConfig(BaseModel):
     name: str = "shadowcorr-trained"
     version: str = "1.0"
     loss: LossConfig = Field(default_factory=LossConfig)
-    pipeline: ShadowCorrConfig = Field(default_factory=ShadowCorrConfig)
+    pipeline: ShadowCorrConfig = Field(default_factory=training_pipeline)
 
     def resume_key(self) -> dict[str, Any]:
         """Fields that must not change between a run and its resumption (epochs may grow).
