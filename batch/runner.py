@@ -18,7 +18,7 @@ from typing import Callable, Iterator, Literal, Sequence
 
 from clients.dataset import SceneSource, discover_scenes
 from clients.records import RecordWriter, UploadRecord, UploadSummary, read_records, summarize_records
-from shadowcorr.config import ShadowCorrConfig
+from shadowcorr.config import NETWORK_METHODS, ShadowCorrConfig
 
 from .stages import SceneTask
 
@@ -71,7 +71,7 @@ def plan_batch(input_path: str | Path, out: str | Path, options: BatchOptions) -
 
 def _engine_records(todo: Sequence[SceneSource], options: BatchOptions) -> Iterator[UploadRecord]:
     tasks = [SceneTask(source=s, config=options.config, metrics=options.metrics) for s in todo]
-    needs_model = options.config.method == "shadowcorr"
+    needs_model = options.config.method in NETWORK_METHODS
     common = dict(model_path=options.model_path, device=options.device, needs_model=needs_model)
     if options.engine == "ray":
         from .ray_engine import run_ray

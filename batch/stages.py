@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from shadowcorr.config import ShadowCorrConfig
+from shadowcorr.config import NETWORK_METHODS
 from shadowcorr.pipeline import assign, baseline_embeddings, embed, model_info, prepare
 from shadowcorr.result import ModelInfo
 from shadowcorr.voxel_scene import VoxelScene
@@ -91,13 +92,13 @@ def embed_tasks(model: "Model | None", tasks: Sequence[SceneTask]) -> list[Scene
 
     Each scene's ``network`` timing is its share of the pass, in proportion to its voxels,
     so that summing ``network`` over scenes gives the time the network really ran.  The
-    ``meanshift`` baseline has no network: its tasks pass through untouched.
+    methods without a network (``projection``, ``meanshift``) pass through untouched.
     """
-    ready = [t for t in tasks if t.scene is not None and t.error is None and t.config.method == "shadowcorr"]
+    ready = [t for t in tasks if t.scene is not None and t.error is None and t.config.method in NETWORK_METHODS]
     if not ready:
         return list(tasks)
     if model is None:
-        raise ValueError("the shadowcorr method needs a model")
+        raise ValueError(f"method {ready[0].config.method!r} needs a model")
     t0 = time.perf_counter()
     try:
         outputs = embed(model, [t.scene for t in ready])
@@ -128,7 +129,7 @@ def finish_task(task: SceneTask) -> "UploadRecord":
             scene = task.scene
             assert scene is not None, "finish_task needs a prepared scene"
             scene.timings_ms.update(task.extra_timings_ms)
-            if task.config.method == "meanshift":
+            if task.config.method not in NETWORK_METHODS:
                 result = assign(scene, baseline_embeddings(scene), task.config, metrics=task.metrics)
             else:
                 result = assign(scene, task.embeddings, task.config, model=task.model, metrics=task.metrics)

@@ -85,7 +85,7 @@ def _check_run(records: list[dict], reference: dict[str, list[int]]) -> None:
     for r in records:
         if r["status"] == "ok":
             timings = r["result"]["timings_ms"]
-            assert {"load", "segments", "network", "clustering", "total"} <= set(timings)
+            assert {"load", "segments", "network", "grouping", "total"} <= set(timings)
             assert r["latency_ms"] > 0 and r["result"]["metrics"]["average_purity"] > 0
 
 

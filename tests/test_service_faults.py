@@ -300,7 +300,7 @@ def test_timings_total_covers_the_whole_request(server, tiny):
     r = httpx.post(server.url + "/correspond", files={"bundle": ("s.zip", zipped)}, timeout=60)
     assert r.status_code == 200, r.text
     t = r.json()["timings_ms"]
-    assert {"read_body", "decode", "batch_wait", "network", "clustering", "total"} <= set(t)
+    assert {"read_body", "decode", "batch_wait", "network", "grouping", "total"} <= set(t)
     parts = sum(v for k, v in t.items() if k != "total")
     assert t["total"] >= parts - 1.0, t  # every stage is inside the wall time (1 ms of rounding)
 
