@@ -530,8 +530,10 @@ def main(argv: Sequence[str] | None = None) -> int:
          "scenes_per_cell": n_scenes, "real_repeats": repeats, "seconds": seconds, "cells": summary},
         indent=1, allow_nan=True))
     table = render_tables(summary, conditions, methods)
-    header = (f"Quality benchmark: `{command.strip()}`  \n{n_scenes} synthetic scenes per cell (generator seed "
-              f"{args.seed}), the real scene's random perturbations over {repeats} seeds; mean ± std.  \n"
+    rows = [f"{n_scenes} synthetic scenes per cell (generator seed {args.seed})"] if scenes else []
+    rows += [f"the real scene's random perturbations over {repeats} seeds"] if any(
+        c.rig in REAL_RIGS and c.perturbation for c in conditions) else []
+    header = (f"Quality benchmark: `{command.strip()}`  \n{', '.join(rows + ['mean ± std'])}.  \n"
               f"Evaluation {t_end - t_generated:.0f} s wall with {args.workers} worker(s) "
               f"({cpu:.0f} CPU s in the method calls of all {len(records)} runs: {cpu / args.workers:.0f} s "
               f"on {args.workers} idle cores), generation {t_generated - t_start:.0f} s\n\n")
