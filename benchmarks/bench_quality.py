@@ -211,6 +211,10 @@ class Task:
     done: frozenset[tuple[str, str]] = frozenset()  # (condition, method) runs kept from an earlier run
     records: list[dict[str, Any]] = field(default_factory=list)
 
+    @property
+    def views(self) -> int:
+        return len(self.cameras) if self.cameras else SYNTH_RIGS[self.rig][1].get("cameras", 4)
+
 
 def run_key(record: dict[str, Any]) -> tuple:
     """What identifies one run across invocations: condition, scene, perturbation seed, method."""
@@ -349,7 +353,7 @@ def build_tasks(conditions: list[Condition], methods: list[str], scenes: dict[st
 def evaluate(tasks: list[Task], workers: int, model_path: str | None, threads: int,
              on_done: Callable[[Task], None]) -> None:
     """Run the tasks (in a spawned process pool when ``workers`` > 1), largest first."""
-    tasks = sorted(tasks, key=lambda t: -len(t.conditions) * (len(t.cameras) if t.cameras else 4))
+    tasks = sorted(tasks, key=lambda t: -len(t.conditions) * t.views)  # cost grows with runs and views
     if workers <= 1:
         _init_worker(model_path, threads)
         for t in tasks:
@@ -526,8 +530,10 @@ def main(argv: Sequence[str] | None = None) -> int:
          "scenes_per_cell": n_scenes, "real_repeats": repeats, "seconds": seconds, "cells": summary},
         indent=1, allow_nan=True))
     table = render_tables(summary, conditions, methods)
-    header = (f"Quality benchmark: `{command.strip()}`  \n{n_scenes} synthetic scenes per cell (generator seed "
-              f"{args.seed}), the real scene's random perturbations over {repeats} seeds; mean ± std.  \n"
+    rows = [f"{n_scenes} synthetic scenes per cell (generator seed {args.seed})"] if scenes else []
+    rows += [f"the real scene's random perturbations over {repeats} seeds"] if any(
+        c.rig in REAL_RIGS and c.perturbation for c in conditions) else []
+    header = (f"Quality benchmark: `{command.strip()}`  \n{', '.join(rows + ['mean ± std'])}.  \n"
               f"Evaluation {t_end - t_generated:.0f} s wall with {args.workers} worker(s) "
               f"({cpu:.0f} CPU s in the method calls of all {len(records)} runs: {cpu / args.workers:.0f} s "
               f"on {args.workers} idle cores), generation {t_generated - t_start:.0f} s\n\n")
