@@ -16,19 +16,9 @@ from .runner import ENGINES, BatchOptions, BatchRun, describe_plan, print_failur
 __all__ = ["add_batch_parser", "run_batch_command", "options_from_args"]
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
 def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``batch`` sub-command to an argparse ``subparsers`` object; returns its parser."""
-    from shadowcorr.cli import add_method_options, parse_cameras
+    from shadowcorr.cli import add_method_options, parse_cameras, positive_int
 
     p = subparsers.add_parser(
         "batch",
@@ -41,15 +31,15 @@ def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="RESULTS.jsonl", help="results file (appended to)")
     p.add_argument("--engine", choices=ENGINES, default="local",
                    help="local: a process pool on this machine; ray: Ray Data (pip install \"shadowcorr[ray]\")")
-    p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1,
+    p.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
                    help="worker processes (local) or CPUs of the local Ray instance (default: all cores)")
     p.add_argument("--ray-address", metavar="ADDR",
                    help="join this Ray cluster (auto, HOST:6379 or ray://HOST:10001) instead of starting one")
-    p.add_argument("--actors", type=_positive_int, default=1, help="Ray: network actors, each holding the model")
-    p.add_argument("--batch-size", type=_positive_int, default=8, help="Ray: prepared scenes per forward pass")
+    p.add_argument("--actors", type=positive_int, default=1, help="Ray: network actors, each holding the model")
+    p.add_argument("--batch-size", type=positive_int, default=8, help="Ray: prepared scenes per forward pass")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where the network runs")
     p.add_argument("--cameras", type=parse_cameras, help="cameras to use from Unreal-layout sets (default: all)")
-    p.add_argument("--limit", type=_positive_int, help="run at most this many scenes in this run")
+    p.add_argument("--limit", type=positive_int, help="run at most this many scenes in this run")
     p.add_argument("--no-metrics", action="store_true", help="skip ground-truth metrics")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_method_options(p)

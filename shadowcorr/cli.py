@@ -259,7 +259,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 1 if failures or not rows else 0
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1."""
     try:
         value = int(text)
     except ValueError:
@@ -306,9 +307,9 @@ def _add_convert_parser(sub: argparse._SubParsersAction) -> None:
     bag.add_argument("--sync-tolerance", type=float, default=0.0, metavar="SECONDS",
                      help="largest stamp difference between a depth image and its mask, and the furthest a "
                           "transform is extrapolated (default 0: exact stamps)")
-    bag.add_argument("--every", type=_positive_int, default=1, metavar="K",
+    bag.add_argument("--every", type=positive_int, default=1, metavar="K",
                      help="keep every K-th depth+mask pair of each camera (default 1)")
-    bag.add_argument("--max-views", type=_positive_int, metavar="N",
+    bag.add_argument("--max-views", type=positive_int, metavar="N",
                      help="at most N views per camera, evenly spread over the recording")
     bag.add_argument("--ground-truth", choices=["none", "instance"], default="none",
                      help="'instance': mask ids are object identities in every view (enables metrics)")

@@ -26,6 +26,7 @@ import pytest
 from service.testing import ServerProcess
 
 from .paths import SAMPLE_DIR
+from .test_service import _zip
 
 MiB = 1024 * 1024
 HEADER_TIMEOUT_S = 2.0
@@ -96,14 +97,6 @@ def slow_parts():
     bundle.views += [dataclasses.replace(v, name=v.name + "_again") for v in bundle.views]
     manifest, files = bundle_to_parts(bundle)
     return [("manifest", (None, json.dumps(manifest).encode()))] + [("f", (k, v)) for k, v in files.items()]
-
-
-def _zip(files: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
-        for name, data in files.items():
-            zf.writestr(name, data)
-    return buf.getvalue()
 
 
 def _connect(server: ServerProcess, timeout: float = 30.0) -> socket.socket:
