@@ -17,7 +17,16 @@ results file in the ``upload-dataset`` record shape, resumable.  Two engines:
     print(run.summary)
 """
 
-from .runner import BatchOptions, BatchRun, plan_batch, run_batch
-from .stages import SceneTask
+from typing import TYPE_CHECKING
 
-__all__ = ["BatchOptions", "BatchRun", "SceneTask", "plan_batch", "run_batch"]
+from shadowcorr._lazy import lazy_exports
+
+# Lazy (PEP 562): `shadowcorr --help` registers the batch command without importing torch.
+_EXPORTS = {"BatchOptions": "runner", "BatchRun": "runner", "plan_batch": "runner", "run_batch": "runner",
+            "SceneTask": "stages"}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
+    from .runner import BatchOptions, BatchRun, plan_batch, run_batch
+    from .stages import SceneTask

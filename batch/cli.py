@@ -9,9 +9,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .runner import ENGINES, BatchOptions, BatchRun, describe_plan, print_failures, run_batch
+if TYPE_CHECKING:  # the runner imports the pipeline (torch): only when the command runs
+    from .runner import BatchOptions, BatchRun
 
 __all__ = ["add_batch_parser", "run_batch_command", "options_from_args"]
 
@@ -29,7 +30,7 @@ def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("input", metavar="INPUT", help="dataset directory, bundle or archive")
     p.add_argument("--out", required=True, metavar="RESULTS.jsonl", help="results file (appended to)")
-    p.add_argument("--engine", choices=ENGINES, default="local",
+    p.add_argument("--engine", choices=("local", "ray"), default="local",  # runner.ENGINES, without importing it
                    help="local: a process pool on this machine; ray: Ray Data (pip install \"shadowcorr[ray]\")")
     p.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
                    help="worker processes (local) or CPUs of the local Ray instance (default: all cores)")
@@ -47,8 +48,10 @@ def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
-def options_from_args(args: argparse.Namespace) -> BatchOptions:
+def options_from_args(args: argparse.Namespace) -> "BatchOptions":
     from shadowcorr.cli import config_from_args
+
+    from .runner import BatchOptions
 
     return BatchOptions(
         engine=args.engine, workers=args.workers, ray_address=args.ray_address, actors=args.actors,
@@ -61,6 +64,8 @@ def run_batch_command(args: argparse.Namespace) -> int:
     """Entry point of ``shadowcorr batch``; returns the exit status (1 if a scene failed, 130 if interrupted)."""
     from clients.records import format_summary
     from tqdm import tqdm
+
+    from .runner import describe_plan, print_failures, run_batch
 
     options = options_from_args(args)
     if options.engine == "ray":

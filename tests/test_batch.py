@@ -149,3 +149,14 @@ def test_ray_engine_without_ray_names_the_extra(dataset, tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert 'pip install "shadowcorr[ray]"' in proc.stderr
     assert not (tmp_path / "r.jsonl").exists()
+
+
+def test_cli_offers_every_engine_the_runner_knows():
+    import argparse
+
+    from batch.cli import add_batch_parser
+    from batch.runner import ENGINES
+
+    parser = add_batch_parser(argparse.ArgumentParser().add_subparsers())
+    engine = next(a for a in parser._actions if a.dest == "engine")
+    assert tuple(engine.choices) == ENGINES
