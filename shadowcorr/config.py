@@ -120,7 +120,7 @@ class ShadowCorrConfig(BaseModel):
     fusion_volume_distance: float = Field(1.0, gt=0, description="embedding distance at which volumetric evidence is neutral")
     fusion_volume_scale: float = Field(0.5, gt=0, description="embedding distance over which the evidence saturates")
     fusion_volume_voxels: float = Field(10.0, gt=0, description="shared voxels that give a segment pair full mass")
-    fusion_cannot_link: float = Field(0.8, ge=0, description="penalty times the share of the views seeing both "
+    fusion_cannot_link: float = Field(0.6, ge=0, description="penalty times the share of the views seeing both "
                                       "groups in which they wear different mask ids")
     fusion_same_mask: float = Field(0.5, ge=0, description="bonus times the share of the views seeing both groups "
                                     "in which they wear one mask id (blobs of one mask)")
