@@ -56,10 +56,14 @@ def server():
         yield proc
 
 
+def _clean_env() -> dict[str, str]:
+    """This environment without SHADOWCORR_* settings and PYTHON* paths (which could reach the library)."""
+    return {k: v for k, v in os.environ.items() if not k.startswith(("SHADOWCORR_", "PYTHON"))}
+
+
 def client(venv: Path, *args: str, cwd: Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     """``shadowcorr-client ARGS`` of the standalone venv, outside the checkout, without SHADOWCORR_* settings."""
-    clean = {k: v for k, v in os.environ.items() if not k.startswith(("SHADOWCORR_", "PYTHON"))}
-    return subprocess.run([str(venv / "bin" / "shadowcorr-client"), *args], cwd=cwd, env={**clean, **(env or {})},
+    return subprocess.run([str(venv / "bin" / "shadowcorr-client"), *args], cwd=cwd, env={**_clean_env(), **(env or {})},
                           capture_output=True, text=True, timeout=120)
 
 
@@ -73,7 +77,7 @@ def test_installs_only_light_pure_python_packages(venv) -> None:
     assert size_mb < 30
     assert not list(site.rglob("*.so")), "a compiled extension is not pure Python"
     probe = subprocess.run([str(venv / "bin" / "python"), "-c", "import clients, sys; import shadowcorr"],
-                           cwd=venv, capture_output=True, text=True)
+                           cwd=venv, capture_output=True, text=True, env=_clean_env())
     assert "No module named 'shadowcorr'" in probe.stderr  # clients imports; the library is not there
 
 

@@ -210,7 +210,11 @@ def test_refine_poses_query_option_reports_every_view(client, sample):
     body = r.json()
     assert [p["view"] for p in body["poses"]] == [v["name"] for v in manifest["views"]]
     assert all(p["status"] == "unchanged" and p["rotation_deg"] == 0.0 for p in body["poses"])
-    assert local.poses is None and "poses" in body["timings_ms"]
+    assert "poses" in body["timings_ms"]
+    assert [p.status for p in local.poses] == [p["status"] for p in body["poses"]]  # on by default
+    off = client.post("/correspond", params={"refine_poses": "false"}, files={"bundle": ("scene.zip", path.read_bytes())})
+    assert off.status_code == 200, off.text
+    assert off.json()["poses"] is None and "poses" not in off.json()["timings_ms"]
 
 
 def test_sample_scene_parts_and_zip_match_local(client, sample):
