@@ -249,6 +249,16 @@ def _too_large(limit: int, what: str) -> ApiError:
     )
 
 
+def _over_limit(code: str, what: str, limit: str, maximum: int, view: str) -> JobError:
+    """413 for a scene whose masks, counted up to ``view``, already exceed ``limit``."""
+    return JobError(
+        413,
+        code,
+        f"the masks hold at least {what} (counted up to view {view!r}); the limit is {limit} = {maximum}",
+        [{"loc": f"views[{view}].mask", "msg": f"more than {maximum} ({limit})"}],
+    )
+
+
 def check_instances(bundle: SceneBundle, limits: RequestLimits, min_blob_pixels: int) -> None:
     """Cheap checks on the decoded masks: the cost estimate that admits ``prepare`` or not.
 
@@ -285,23 +295,12 @@ def check_instances(bundle: SceneBundle, limits: RequestLimits, min_blob_pixels:
             _, counts = np.unique(fg, return_counts=True)
         total += int(np.count_nonzero(counts >= threshold))
         if total > limits.max_segments:
-            raise JobError(
-                413,
-                "too_many_segments",
-                f"the masks hold at least {total} instances (counted up to view {view.name!r}); "
-                f"the limit is max_segments = {limits.max_segments} segments per scene",
-                [{"loc": f"views[{view.name}].mask", "msg": f"more than {limits.max_segments} instances in the scene"}],
-            )
+            raise _over_limit("too_many_segments", f"{total} instances", "max_segments", limits.max_segments, view.name)
         if view.depth is not None and view.depth.shape == mask.shape:
             points += int(np.count_nonzero(view.depth[on] > 0))  # the loader zeroes invalid depth
         if points > limits.max_scene_points:
-            raise JobError(
-                413,
-                "too_many_points",
-                f"the masks hold at least {points} instance pixels with valid depth (counted up to view "
-                f"{view.name!r}); the limit is max_scene_points = {limits.max_scene_points}",
-                [{"loc": f"views[{view.name}].mask", "msg": f"more than {limits.max_scene_points} points"}],
-            )
+            raise _over_limit("too_many_points", f"{points} instance pixels with valid depth", "max_scene_points",
+                              limits.max_scene_points, view.name)
     if total == 0 or points == 0:
         if not any_foreground:
             why = "every mask is empty (all background)"

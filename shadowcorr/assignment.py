@@ -17,7 +17,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from .clustering import majority_vote, mean_shift, merge_small_clusters
-from .config import NETWORK_METHODS, ShadowCorrConfig
+from .config import NETWORK_METHODS, SURFACE_METHODS, ShadowCorrConfig
 from .grouping import SegmentGraph, agglomerate, link_components, segment_confidence
 from .metrics import segment_metrics, voxel_ari
 from .result import ModelInfo, ObjectSummary, Result, SegmentLabel
@@ -149,7 +149,7 @@ def assign(
     config = config or scene.config
     timings = dict(scene.timings_ms)
     s = scene.num_segments
-    if config.method in ("projection", "fused"):
+    if config.method in SURFACE_METHODS:
         t0 = time.perf_counter()
         seg_label, support = group_by_evidence(scene, embeddings, config)
         voxel_label = _strongest_member_label(scene, seg_label)

@@ -15,6 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 #: The methods, and those that run the network.
 METHODS = ("shadowcorr", "meanshift", "projection", "fused")
 NETWORK_METHODS = ("shadowcorr", "fused")
+#: The methods that read the cross-view surface evidence and group segments by evidence.
+SURFACE_METHODS = ("projection", "fused")
 
 #: Options a remote caller may change per request without making the model's
 #: inputs inconsistent with its training (used by the HTTP service).

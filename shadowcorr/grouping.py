@@ -263,8 +263,8 @@ def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCo
     per_view = np.bincount(group * num_views + graph.view, minlength=k * num_views).reshape(k, num_views)
     present = per_view[grp] - own[:, None] * (np.arange(num_views)[None, :] == graph.view[seg][:, None])
     on_mask = surf.on_mask.astype(np.float64)
-    group_on_mask = np.zeros((k, num_views))
-    np.add.at(group_on_mask, group, on_mask)
+    members = coo_matrix((np.ones(s), (group, np.arange(s))), shape=(k, s)).tocsr()
+    group_on_mask = members @ on_mask  # per group, summed over its segments
     trials_out = (on_mask[seg] * (present > 0)).sum(axis=1)
     trials_in = group_on_mask[grp, graph.view[seg]]
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from .assignment import assign
 from .bundle import SceneBundle, unit_scale
-from .config import NETWORK_METHODS, ShadowCorrConfig
+from .config import NETWORK_METHODS, SURFACE_METHODS, ShadowCorrConfig
 from .errors import SceneLimitError
 from .nn import Model, load_model, run_batched
 from .pose_refinement import pose_warnings, refine_poses
@@ -51,7 +51,7 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     depth_warnings = check_valid_depth(segments, bundle.units, config)  # DepthRangeError when nearly all are empty
     timings["segments"] = (time.perf_counter() - t0) * 1e3
     surface = None
-    if config.method in ("projection", "fused"):
+    if config.method in SURFACE_METHODS:
         t0 = time.perf_counter()
         surface = surface_evidence(bundle, segments, config)
         timings["surface_evidence"] = (time.perf_counter() - t0) * 1e3
