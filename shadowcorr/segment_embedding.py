@@ -89,31 +89,29 @@ def train_segment_embeddings(cooc: np.ndarray | csr_matrix, centroids: np.ndarra
         return z.astype(np.float32)
     w = _weights(cooc, config)
     if config.segment_embedding_scope == "scene":
-        rows = np.flatnonzero(np.diff(cooc.indptr) > 0)
-        z[:] = _train_batch(z[None], w[rows].toarray()[None], rows[None], np.ones((1, z.shape[0]), bool), config)[0]
-        return z.astype(np.float32)
+        buckets = [np.arange(z.shape[0])[None]]
+    else:
+        buckets = _component_buckets(cooc)
     pairs = w.tocoo()
     slot = np.empty(z.shape[0], dtype=np.int64)  # a segment's problem within its bucket
     local = np.empty(z.shape[0], dtype=np.int64)  # and its place in that problem
-    for members in _component_buckets(cooc):  # (m, n) segment ids, -1 padding
+    for members in buckets:  # (m, n) segment ids, -1 padding
         valid = members >= 0
         slot[:] = -1
         slot[members[valid]] = np.nonzero(valid)[0]
         local[members[valid]] = np.nonzero(valid)[1]
         zb = np.where(valid[..., None], z[np.where(valid, members, 0)], 0.0)
         wb = np.zeros(members.shape + (members.shape[1],))
-        inside = slot[pairs.row] >= 0  # both ends of a pair lie in one component
+        inside = slot[pairs.row] >= 0  # both ends of a pair lie in one problem
         a, b = pairs.row[inside], pairs.col[inside]
         wb[slot[a], local[a], local[b]] = pairs.data[inside]
-        local_rows = np.broadcast_to(np.arange(members.shape[1]), members.shape)
-        zb = _train_batch(zb, wb, np.where(valid, local_rows, -1), valid, config)
+        zb = _train_batch(zb, wb, valid, config)
         z[members[valid]] = zb[valid]
     return z.astype(np.float32)
 
 
 #: Components up to this size share one bucket: padding them is cheaper than more Python steps.
 _SMALLEST_BUCKET = 8
-
 
 def _component_buckets(cooc: csr_matrix) -> list[np.ndarray]:
     """Connected components of the co-occurrence graph with two or more segments, grouped by
@@ -138,48 +136,43 @@ def _component_buckets(cooc: csr_matrix) -> list[np.ndarray]:
     return out
 
 
-def _train_batch(z: np.ndarray, weights: np.ndarray, rows: np.ndarray, valid: np.ndarray,
-                 config: ShadowCorrConfig) -> np.ndarray:
+def _train_batch(z: np.ndarray, weights: np.ndarray, valid: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
     """Adam on a batch of independent problems.
 
-    ``z``: (m, n, dim) start vectors (zeros where padded); ``weights``: (m, r, n) pair weights
-    of the loss's rows; ``rows``: (m, r) the column of each row's own segment, -1 for a padded
-    row; ``valid``: (m, n) real segments.  Each problem's loss is averaged over its own rows.
+    ``z``: (m, n, dim) start vectors (zeros where padded); ``weights``: (m, n, n) pair weights,
+    row a holding w_ab; ``valid``: (m, n) real segments.  A segment's row is in the loss when
+    it has a partner (a positive weight); each problem's loss is averaged over its own rows.
+
+    With E = exp(s - 1 / tau) (1 / tau is every row's maximum: a vector's similarity with
+    itself), p = E w / sum(E w) and q = E / sum(E) over the domain share one exponential; as
+    rows and columns index the same vectors, dL/du = (G + G^T) u with G = (q - p) / (rows tau).
+    Padded slots get no gradient and stay at zero.
     """
     tau, lr = config.segment_embedding_tau, config.segment_embedding_lr
-    row_ok = rows >= 0
-    with np.errstate(divide="ignore"):
-        log_w = np.where(row_ok[..., None], np.log(weights), 0.0)  # -inf where never co-occurring
-    own = np.zeros(weights.shape, dtype=bool)
-    mi, ri = np.nonzero(row_ok)
-    own[mi, ri, rows[mi, ri]] = True
-    # q's domain: every real segment of the problem but the row's own; padded rows see all (ignored).
-    q_mask = np.where(row_ok[..., None], valid[:, None, :] & ~own, True)
-    row_scale = (row_ok / np.maximum(row_ok.sum(axis=1, keepdims=True), 1))[..., None]
-    gather = np.where(row_ok, rows, 0)
-
-    def softmax(logits: np.ndarray) -> np.ndarray:
-        e = np.exp(logits - logits.max(axis=-1, keepdims=True))
-        return e / e.sum(axis=-1, keepdims=True)
-
+    row_ok = weights.sum(axis=-1) > 0
+    domain = (valid[:, None, :] & ~np.eye(valid.shape[1], dtype=bool)[None]).astype(np.float64)
+    row_scale = (row_ok / np.maximum(row_ok.sum(axis=1, keepdims=True), 1) / tau)[..., None]
     m = np.zeros_like(z)
     v = np.zeros_like(z)
-    batch = np.arange(z.shape[0])[:, None]
     for step in range(1, config.segment_embedding_steps + 1):
-        norm = np.maximum(np.linalg.norm(z, axis=-1, keepdims=True), 1e-12)
+        norm = np.maximum(np.sqrt(np.einsum("mnd,mnd->mn", z, z))[..., None], 1e-12)
         unit = z / norm
-        unit_rows = unit[batch, gather]
-        sim = unit_rows @ unit.transpose(0, 2, 1) / tau
-        # dL/dsim_ab = (q_ab - p_ab) / rows: q over the domain, p weighted by w_ab.
-        p = softmax(sim + log_w)
-        q = softmax(np.where(q_mask, sim, -np.inf))
-        g_sim = (q - p) * row_scale
-        g_unit = g_sim.transpose(0, 2, 1) @ unit_rows / tau
-        # Each problem lists a segment in at most one row, so indexed += does not collide.
-        g_unit[mi, rows[mi, ri]] += (g_sim @ unit / tau)[mi, ri]
-        grad = (g_unit - unit * np.sum(unit * g_unit, axis=-1, keepdims=True)) / norm
-        m = _ADAM_BETA1 * m + (1 - _ADAM_BETA1) * grad
-        v = _ADAM_BETA2 * v + (1 - _ADAM_BETA2) * grad * grad
+        e = unit @ unit.transpose(0, 2, 1)
+        e -= 1.0
+        e *= 1.0 / tau
+        np.exp(e, out=e)
+        q = e * domain
+        q /= np.maximum(q.sum(axis=-1, keepdims=True), 1e-300)
+        e *= weights
+        e /= np.maximum(e.sum(axis=-1, keepdims=True), 1e-300)
+        q -= e
+        q *= row_scale
+        g_unit = (q + q.transpose(0, 2, 1)) @ unit
+        grad = (g_unit - unit * np.einsum("mnd,mnd->mn", unit, g_unit)[..., None]) / norm
+        m *= _ADAM_BETA1
+        m += (1 - _ADAM_BETA1) * grad
+        v *= _ADAM_BETA2
+        v += (1 - _ADAM_BETA2) * grad * grad
         z = z - lr * (m / (1 - _ADAM_BETA1**step)) / (np.sqrt(v / (1 - _ADAM_BETA2**step)) + _ADAM_EPS)
     return z
 
