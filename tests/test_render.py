@@ -76,7 +76,7 @@ def _blob_mask(bundle: SceneBundle, view_name: str, instance: int, component: in
     view = next(v for v in bundle.views if v.name == view_name)
     blobs = find_blobs(view.mask, True, 50)
     (blob,) = np.flatnonzero((blobs.instance == instance) & (blobs.component == component))
-    return blobs.label_image(view.mask.shape) == blob
+    return blobs.labels == blob  # numbered from 0
 
 
 def _contains(bundle: SceneBundle, view: str, inst: int, comp: int, window: tuple[slice, slice]) -> bool:

@@ -76,7 +76,7 @@ def segment_index_image(view: View, lookup: dict[tuple[int, int], int], engine: 
     mask = np.asarray(view.mask)
     blobs = find_blobs(mask, engine.split_components, engine.min_blob_pixels)
     seg_of_blob = [lookup.get(key, -1) for key in zip(blobs.instance.tolist(), blobs.component.tolist())]  # per blob
-    return blobs.label_image(mask.shape, np.asarray(seg_of_blob, dtype=np.int64))
+    return blobs.label_image(np.asarray(seg_of_blob, dtype=np.int64))
 
 
 def edge_band(seg_image: np.ndarray, width: int) -> np.ndarray:
