@@ -55,6 +55,7 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
         t0 = time.perf_counter()
         surface = surface_evidence(bundle, segments, config)
         timings["surface_evidence"] = (time.perf_counter() - t0) * 1e3
+    segments.pixel_segment = None  # the label images serve the surface evidence only: free them now
     if config.method == "projection":
         shells, shadows = raw_shells(segments), ShadowVoxels.empty()
     else:
