@@ -18,7 +18,7 @@ from pykdtree.kdtree import KDTree
 
 from .clustering import majority_vote, mean_shift, merge_small_clusters
 from .config import NETWORK_METHODS, SURFACE_METHODS, ShadowCorrConfig
-from .grouping import SegmentGraph, agglomerate, link_components, segment_confidence
+from .grouping import SegmentGraph, agglomerate, link_components, segment_confidence, split_mask_ids
 from .metrics import segment_metrics, voxel_ari
 from .result import ModelInfo, ObjectSummary, Result, SegmentLabel
 from .shadows import segment_max, segment_min
@@ -49,7 +49,10 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
     volume = (none, none, np.zeros(0), np.zeros(0))
     if config.method == "fused":
         volume = volume_pairs(scene, embeddings, config)
-    graph = SegmentGraph(scene.segment_view, scene.segment_instance, scene.surface, *volume)
+    instance = scene.segment_instance
+    if config.method == "fused":
+        instance = split_mask_ids(scene.surface, scene.segment_view, instance, config)
+    graph = SegmentGraph(scene.segment_view, instance, scene.surface, *volume)
     if config.method == "projection":
         labels = link_components(scene.surface, scene.segment_view, config)
     else:
