@@ -14,30 +14,27 @@ import multiprocessing as mp
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import TYPE_CHECKING, Iterable, Iterator
 
-from .stages import SceneTask, embed_tasks, finish_task, prepare_task, single_thread_numerics
+from .stages import SceneTask, process_model, run_scenes, single_thread_numerics
 
 if TYPE_CHECKING:
     from clients.records import UploadRecord
-    from shadowcorr.nn import Model
 
 __all__ = ["run_local"]
 
-_worker_model: "Model | None" = None
+_worker_model_key: tuple[str | None, str] | None = None  # (model_path, device) when the method needs the model
 
 
 def _init_worker(model_path: str | None, device: str, needs_model: bool) -> None:
-    global _worker_model
+    global _worker_model_key
     single_thread_numerics()
     if needs_model:
-        from shadowcorr.nn import load_model
-
-        _worker_model = load_model(model_path, device=device)
+        _worker_model_key = (model_path, device)
+        process_model(*_worker_model_key)  # now, not in the first scene's latency
 
 
 def _run_scene(task: SceneTask) -> "UploadRecord":
-    prepare_task(task)
-    embed_tasks(_worker_model, [task])
-    return finish_task(task)
+    (record,) = run_scenes([task], process_model(*_worker_model_key) if _worker_model_key else None)
+    return record
 
 
 def run_local(
