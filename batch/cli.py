@@ -59,8 +59,8 @@ def options_from_args(args: argparse.Namespace) -> "BatchOptions":
 
     return BatchOptions(
         engine=args.engine, workers=args.workers, ray_address=args.ray_address, ray_plan=args.ray_plan,
-        actors=args.actors, batch_size=args.batch_size, model_path=args.model, device=args.device, config=config_from_args(args),
-        metrics=not args.no_metrics, cameras=args.cameras, limit=args.limit,
+        actors=args.actors, batch_size=args.batch_size, model_path=args.model, device=args.device,
+        config=config_from_args(args), metrics=not args.no_metrics, cameras=args.cameras, limit=args.limit,
     )
 
 

@@ -5,7 +5,8 @@ Measured against the alternative (workers prepare and assign, the parent batches
 network; ``benchmarks/bench_batch.py --parent-network``): no faster on 2 cores (79 vs 83 s
 for 50 scenes, within the machine's noise) and more CPU per scene (shipping every voxel
 scene to the parent and back, a parent competing with the workers for the cores), since
-the forward pass is only about a tenth of a scene's CPU time; so the simpler design stays.
+the forward pass was about a tenth of a scene's CPU time (a quarter with the ``fused`` method);
+so the simpler design stays.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ Two plans, chosen by ``plan`` (``--ray-plan``; ``auto`` takes ``fused`` on CPU a
 ``_SCENES_PER_FUSED_TASK``), and each Ray worker process loads the model once
 (:func:`batch.stages.process_model`) and keeps it, as Ray keeps its task workers warm
 across tasks and runs.  On CPU this is the faster plan (``benchmarks/bench_batch.py``):
-the network is a fifth of a scene's CPU time and gains nothing from batching there, a
+the network is about a quarter of a scene's CPU time and gains nothing from batching there, a
 CPU actor is one more process importing torch in every run (about 5 CPU seconds, as
 Ray Data ends its actors with the run), and only each scene's path and configuration
 cross the object store.  ``staged`` is the plan for GPUs: prepare tasks spread over
@@ -62,9 +62,9 @@ __all__ = ["run_ray", "import_ray", "resolve_plan", "RAY_MISSING", "RAY_PLANS"]
 RAY_MISSING = 'the Ray engine needs Ray: pip install "shadowcorr[ray]"'
 RAY_PLANS = ("auto", "fused", "staged")
 
-# A CPU actor reserves no CPU slot: its forward passes (and clustering) are a fifth of a
-# scene's CPU time, and Ray schedules whole CPUs, so any share of one (even 0.2) would
-# leave room for one prepare task fewer on that node (one of two on this machine).
+# A CPU actor reserves no CPU slot: its forward passes (and clustering) are about a
+# quarter of a scene's CPU time, and Ray schedules whole CPUs, so any share of one (even
+# 0.2) would leave room for one prepare task fewer on that node (one of two here).
 _ACTOR_CPUS_ON_CPU = 0
 # Scenes per fused task.  Ray Data notices a finished task only when its scheduling loop
 # next polls (every 0.1 s, longer on a busy machine), and only then submits the next one:
