@@ -193,10 +193,12 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     k = view.intrinsics
     normals = _grid_normals(grid, depth * scale, camera, stride / max(k.fx, k.fy))
     # Moving points: every _MOVING_STRIDE-th grid point with a normal, those of twice the stride first.
-    row, col = np.indices(depth.shape)
-    moving = np.isfinite(normals[0]) & (row % _MOVING_STRIDE == 0) & (col % _MOVING_STRIDE == 0)
-    first = moving & (row % (2 * _MOVING_STRIDE) == 0) & (col % (2 * _MOVING_STRIDE) == 0)
-    order = np.r_[np.flatnonzero(first), np.flatnonzero(moving & ~first)]
+    step = _MOVING_STRIDE
+    index = np.arange(depth.size).reshape(depth.shape)[::step, ::step]
+    moving = np.isfinite(normals[0])[::step, ::step]
+    rest = moving.copy()
+    rest[::2, ::2] = False  # every other moving point per axis comes first
+    order = np.r_[index[::2, ::2][moving[::2, ::2]], index[rest]]
     if order.size < 4 * _COVARIANCE_NEIGHBOURS:
         return None
     points, moving_normals = grid.reshape(3, -1)[:, order], normals.reshape(3, -1)[:, order]
@@ -209,24 +211,8 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     projection = np.array([k.fx / stride, k.fy / stride, (k.cx - cols[0]) / stride, (k.cy - rows[0]) / stride])
     reach = float(np.median(np.sqrt(np.einsum("ij,ij->j", points - camera[:, None], points - camera[:, None]))))
     return _Cloud(grid.reshape(3, -1), normals.reshape(3, -1), depth.shape, points, moving_normals,
-                  int(first.sum()), view.pose[:3, :3].copy(), camera[:, None], projection, coarse, coarse_tree,
+                  order.size - int(rest.sum()), view.pose[:3, :3].copy(), camera[:, None], projection, coarse, coarse_tree,
                   reach, np.zeros(0, dtype=np.int64))
-
-
-def _associate(points: np.ndarray, target: _Cloud) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Projective association of (3, N) points: the target's surface point and normal where each
-    projects into the target's grid, and which points found one (in view, with a normal there)."""
-    local = target.rotation.T @ (points - target.camera)
-    fx, fy, cx, cy = target.projection
-    h, w = target.shape
-    with np.errstate(invalid="ignore", divide="ignore"):
-        inv_z = 1.0 / local[2]
-        col = np.rint(fx * local[0] * inv_z + cx)
-        row = np.rint(fy * local[1] * inv_z + cy)
-    inside = (local[2] > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    flat = np.where(inside, row * w + col, 0).astype(np.int64)
-    normal = target.normal_grid[:, flat]
-    return target.grid[:, flat], normal, inside & np.isfinite(normal[0])
 
 
 def _rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
@@ -260,17 +246,32 @@ def _constraint_ratio(points: np.ndarray, normals: np.ndarray, centre: np.ndarra
 
 def _matches(source: _Cloud, target: _Cloud, transform: np.ndarray, match: float, count: int | None = None
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The source's (first ``count``) moving points under ``transform`` that land within ``match`` of
-    the target's surface, facing the same way (normals within 60 degrees, which keeps points hidden
-    from the target from matching the surface in front of them): (3, M) moved points, target points,
-    normals."""
-    rot, shift = transform[:3, :3], transform[:3, 3:]
-    moved = rot @ source.points[:, :count] + shift
-    matched, normals, found = _associate(moved, target)
+    """Projective association: the source's (first ``count``) moving points, moved by ``transform``,
+    are projected into the target camera and matched with the target's grid sample there.
+
+    Kept: matches within ``match`` of each other and facing the same way (normals within 60
+    degrees, which keeps points hidden from the target from matching the surface in front of
+    them; a sample without a normal matches nothing).  Returns (3, M) moved points, target
+    points and target normals.
+    """
+    rot, shift = transform[:3, :3], transform[:3, 3]
+    # Straight into the target camera's frame: R_t^T (T p - c_t).
+    to_camera = target.rotation.T @ rot
+    local = to_camera @ source.points[:, :count] + (target.rotation.T @ (shift - target.camera[:, 0]))[:, None]
+    fx, fy, cx, cy = target.projection
+    h, w = target.shape
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv_z = 1.0 / local[2]
+        col = np.rint(fx * local[0] * inv_z + cx)
+        row = np.rint(fy * local[1] * inv_z + cy)
+    index = np.flatnonzero((local[2] > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
+    flat = (row[index] * w + col[index]).astype(np.int64)
+    matched, normals = target.grid[:, flat], target.normal_grid[:, flat]
+    moved = rot @ source.points[:, index] + shift[:, None]
     gap = moved - matched
     with np.errstate(invalid="ignore"):
-        keep = found & (np.einsum("ij,ij->j", gap, gap) <= match * match) \
-            & (np.einsum("ij,ij->j", rot @ source.normals[:, :count], normals) > 0.5)
+        keep = (np.einsum("ij,ij->j", gap, gap) <= match * match) \
+            & (np.einsum("ij,ij->j", rot @ source.normals[:, index], normals) > 0.5)
     return moved[:, keep], matched[:, keep], normals[:, keep]
 
 
@@ -297,9 +298,9 @@ def _gauss_newton(source: _Cloud, target: _Cloud, transform: np.ndarray, match: 
         centre = moved.mean(axis=1, keepdims=True)
         arm = moved - centre
         # Rows of the Jacobian: d(residual)/d(rotation about centre) = arm x normal, d/d(shift) = normal.
-        jac = np.concatenate([arm[[1]] * normals[[2]] - arm[[2]] * normals[[1]],
-                              arm[[2]] * normals[[0]] - arm[[0]] * normals[[2]],
-                              arm[[0]] * normals[[1]] - arm[[1]] * normals[[0]], normals])
+        jac = np.concatenate([arm[1:2] * normals[2:3] - arm[2:3] * normals[1:2],
+                              arm[2:3] * normals[0:1] - arm[0:1] * normals[2:3],
+                              arm[0:1] * normals[1:2] - arm[1:2] * normals[0:1], normals])
         err = np.einsum("ij,ij->j", moved - matched, normals)
         # Regularised by a hair: a degenerate surface is caught afterwards by the constraint ratio.
         hessian = jac @ jac.T
