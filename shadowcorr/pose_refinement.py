@@ -135,6 +135,7 @@ class _Pair:
     overlap: float  # share of the source's points within the fine match distance of the target's surface
     centre: np.ndarray  # (3,) centroid of the matched surface (centred frame)
     extent: float  # RMS distance of the matched surface from ``centre``: the lever of a rotation
+    weight: float  # in the pose graph: overlap / residual, the residual floored at what registration resolves
 
 
 def _view_grid(view: View, max_depth_bundle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
@@ -290,7 +291,8 @@ def _point_to_plane(source: _Cloud, target: _Cloud, transform: np.ndarray, match
 
 def _gauss_newton(source: _Cloud, target: _Cloud, transform: np.ndarray, match: float, count: int | None,
                   stop: float) -> np.ndarray:
-    """At most ``_FINE_ITERATIONS`` point-to-plane steps of ``_point_to_plane``, until one moves less than ``stop``."""
+    """At most ``_FINE_ITERATIONS`` point-to-plane Gauss-Newton steps on the first ``count`` moving
+    points, until one moves the matched surface by less than ``stop``."""
     for _ in range(_FINE_ITERATIONS):
         moved, matched, normals = _matches(source, target, transform, match, count)
         if moved.shape[1] < 6:
@@ -317,8 +319,8 @@ def _gauss_newton(source: _Cloud, target: _Cloud, transform: np.ndarray, match: 
 
 
 def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig) -> tuple[_Pair | None, str]:
-    """Coarse GICP (small_gicp, thinned clouds, wide matching), then point-to-plane on every
-    sampled point; None (and why) when the result is not trustworthy."""
+    """Coarse GICP (small_gicp, thinned clouds, wide matching), then point-to-plane on the moving
+    grid samples (``_point_to_plane``); None (and why) when the result is not trustworthy."""
     spacing = config.pose_point_spacing
     coarse = _coarse_match_distance(config, max(source.reach, target.reach))
     result = small_gicp.align(target.coarse, source.coarse, target.coarse_tree, registration_type="GICP",
@@ -341,7 +343,9 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig) -> tuple
     ratio = _constraint_ratio(matched, normals, centre, extent)
     if ratio < _MIN_CONSTRAINT_RATIO:
         return None, f"degenerate surface (constraint ratio {ratio:.1e}: the overlap does not pin every direction)"
-    return _Pair(-1, -1, transform, residual, overlap, centre, extent), "ok"
+    # Floored: two identical views fit exactly (residual 0), which must not outweigh every other pair.
+    weight = overlap / max(residual, _FINE_STOP_SPACING * spacing)
+    return _Pair(-1, -1, transform, residual, overlap, centre, extent, weight), "ok"
 
 
 def _candidate_pairs(clouds: list[_Cloud | None], min_overlap: float) -> list[tuple[int, int]]:
@@ -395,7 +399,7 @@ class _EdgeSystem:
     def __init__(self, n: int, edges: list[_Pair]) -> None:
         self.source = np.array([e.source for e in edges], dtype=np.int64)
         self.target = np.array([e.target for e in edges], dtype=np.int64)
-        weight = np.array([e.overlap / e.residual for e in edges])
+        weight = np.array([e.weight for e in edges])
         self.weight = weight / weight.max()
         rows = np.r_[np.arange(len(edges)), np.arange(len(edges))]
         self.incidence = csr_matrix((np.r_[self.weight, -self.weight], (rows, np.r_[self.source, self.target])),

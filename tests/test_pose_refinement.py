@@ -187,3 +187,16 @@ def test_separate_places_are_refined_apart(truth):
     # The sample scene's own poses disagree with its depth by about 0.04 deg (found with the
     # registration turned every way), which alone moves a camera 10 m out by up to ~1 cm.
     assert deg.max() < 0.1 and cm.max() < 1.5, (deg, cm)
+
+
+def test_a_duplicated_view_fits_exactly_and_does_not_outweigh_the_others(truth):
+    """Two identical views register with residual 0; the graph must still weigh the other pairs."""
+    noisy = perturbed(truth, 1.0, 2.5, seed=5)
+    twin = dataclasses.replace(noisy.views[0], name=noisy.views[0].name + "_again")
+    refined, reports = refine_poses(dataclasses.replace(noisy, views=[*noisy.views, twin]), CONFIG)
+    assert [r.status for r in reports] == ["corrected"] * 5
+    assert reports[0].residual is not None and reports[-1].neighbours
+    deg, cm = pose_errors(poses(refined)[:4], poses(truth), common_motion=True)
+    assert deg.max() < 0.1 and cm.max() < 1.0, (deg, cm)
+    twin_deg, twin_cm = pose_errors(poses(refined)[[-1]], poses(refined)[[0]])
+    assert twin_deg[0] < 0.01 and twin_cm[0] < 0.1  # the twins end up (nearly) where each other are
