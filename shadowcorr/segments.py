@@ -67,6 +67,7 @@ class Blobs:
     lengths: np.ndarray  # (B,) pixels per blob
     instance: np.ndarray  # (B,) mask value
     component: np.ndarray  # (B,) index within its instance, largest first
+    bounds: tuple[int, int, int, int] = (0, 0, 0, 0)  # row and column ranges [r0, r1) x [c0, c1) holding every blob
 
     def label_image(self, labels: np.ndarray, first_index: int = 0, fill: int = -1) -> np.ndarray:
         """(H, W) int64 image holding ``labels[b]`` on blob b's pixels and ``fill`` elsewhere
@@ -93,6 +94,7 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
     image = np.full(mask.shape, -1, dtype=np.int32)
     lengths, instances, components = [], [], []
     first = first_index
+    r0, r1, c0, c1 = mask.shape[0], 0, mask.shape[1], 0
     for label, window in enumerate(ndimage.find_objects(values), start=1):  # per instance value, not per pixel
         if window is None:
             continue
@@ -110,6 +112,8 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
         blob_of_label[keep + 1] = np.arange(first, first + keep.size)
         # Windows of different instances overlap; each writes only its own instance's pixels.
         image[window][sub] = blob_of_label[labels[sub]]
+        r0, r1 = min(r0, window[0].start), max(r1, window[0].stop)
+        c0, c1 = min(c0, window[1].start), max(c1, window[1].stop)
         first += keep.size
         lengths.append(counts[keep])
         instances.append(np.full(keep.size, ids[label], dtype=np.int64))
@@ -118,7 +122,7 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
         empty = np.zeros(0, dtype=np.int64)
         return Blobs(image, empty, empty, empty)
     return Blobs(image, np.concatenate(lengths).astype(np.int64), np.concatenate(instances),
-                 np.concatenate(components))
+                 np.concatenate(components), (r0, r1, c0, c1))
 
 
 def back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -169,13 +173,16 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
             continue
         # Back-project the pixels of a stride x stride grid, blob after blob, in raster order.
         stride = _pixel_stride(view, blobs.labels, max_depth_bundle, scale, config)
-        on_grid = blobs.labels[::stride, ::stride]
-        depth = view.depth[::stride, ::stride]
+        # Only the blobs' bounding box is scanned, on the grid of every stride-th row and column.
+        r0, r1, c0, c1 = blobs.bounds
+        r0, c0 = -(-r0 // stride) * stride, -(-c0 // stride) * stride
+        on_grid = blobs.labels[r0:r1:stride, c0:c1:stride]
+        depth = view.depth[r0:r1:stride, c0:c1:stride]
         chosen = (on_grid >= 0) & np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle)
         rows, cols = np.nonzero(chosen)
         blob_of_pixel = on_grid[rows, cols] - (first_segment - blobs.lengths.size)
         by_blob = np.argsort(blob_of_pixel, kind="stable")
-        rows, cols, blob_of_pixel = rows[by_blob] * stride, cols[by_blob] * stride, blob_of_pixel[by_blob]
+        rows, cols, blob_of_pixel = rows[by_blob] * stride + r0, cols[by_blob] * stride + c0, blob_of_pixel[by_blob]
         d = view.depth[rows, cols]
         pts = back_project(view, rows.astype(np.float64), cols.astype(np.float64), d.astype(np.float64))
         inst, comp, sizes = blobs.instance, blobs.component, blobs.lengths
