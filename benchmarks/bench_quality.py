@@ -382,7 +382,7 @@ SUMMARY_KEYS = frozenset({m[0] for m in METRICS} | {"time_ms", "wall_ms"})
 
 def summarize_cells(records: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, Any]]]:
     """``{condition: {method: {metric: {mean, std, n}, "errors": k, "flag_precision", "flag_recall"}}}``."""
-    from shadowcorr.metrics import summarize
+    from shadowcorr.evaluation import summarize
 
     cells: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for r in records:

@@ -319,7 +319,7 @@ def test_summary_percentiles_and_metrics():
     s = summarize_records(["a", "b", "c", "d"], 1, run, latest, wall_s=2.0)
     assert (s.scenes, s.skipped, s.sent, s.ok, s.failed, s.pending) == (4, 1, 2, 1, 1, 1)
     assert s.metrics["rock_purity"] == pytest.approx((95.0, 5.0, 2))
-    assert s.metrics["cluster_purity"] == pytest.approx((80.0, 0.0, 1))  # NaN skipped, as shadowcorr.metrics does
+    assert s.metrics["cluster_purity"] == pytest.approx((80.0, 0.0, 1))  # NaN skipped, as shadowcorr.evaluation.summarize does
     assert s.latency_p50_ms == 100.0
     table = format_summary(s)
     assert "rock purity" in table and "95.00 ± 5.00" in table and "not yet sent" in table

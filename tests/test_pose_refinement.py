@@ -11,7 +11,8 @@ from shadowcorr import ShadowCorrConfig, correspond
 from shadowcorr.bundle import Intrinsics, SceneBundle, View
 from shadowcorr.cli import build_parser, config_from_args
 from shadowcorr.convert import load_ue_scene
-from shadowcorr.pose_refinement import pose_errors, refine_poses
+from shadowcorr.evaluation import pose_errors
+from shadowcorr.stages import refine_poses
 from shadowcorr.poses import look_at_pose
 from shadowcorr.result import Result
 from shadowcorr.synth.noise import perturbed_pose

@@ -1,4 +1,4 @@
-"""Step 0 (optional): refine the declared camera poses from the scene itself.
+"""Stage 1 (optional): refine the declared camera poses from the scene itself.
 
 Odometry and SLAM poses are off by a fraction of a degree to a few degrees; at 7-10 m
 range, 2 degrees moves points by 24-35 cm and whole views stop overlapping in the
@@ -50,10 +50,10 @@ import small_gicp
 from pykdtree.kdtree import KDTree
 from scipy.spatial.transform import Rotation
 
-from .bundle import SceneBundle, View, unit_scale
-from .config import ShadowCorrConfig
-from .result import ViewPoseCorrection
-from .segments import back_project
+from ..bundle import SceneBundle, View, unit_scale
+from ..config import ShadowCorrConfig
+from ..result import ViewPoseCorrection
+from ._02_segments import back_project
 
 #: Pixels sampled per view before thinning (a regular grid; about 1 in 100 of a 1080p image).
 _SAMPLED_PIXELS = 20_000

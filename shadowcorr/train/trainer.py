@@ -2,8 +2,8 @@
 
 Recipe (SPEC §2, Training): Adam, lr 5e-5, one scene per step (``batch_scenes``),
 loss = discriminative + prototypical + graph (:mod:`.losses`), per-voxel target =
-:func:`shadowcorr.assignment.voxel_truth`.  After every epoch the network is validated
-through the real inference path - :func:`shadowcorr.assignment.assign` (MeanShift, small
+:func:`shadowcorr.evaluation.voxel_truth`.  After every epoch the network is validated
+through the real inference path - :func:`shadowcorr.pipeline.assign` (MeanShift, small
 cluster merge, majority vote) - and the epoch with the best mean validation voxel ARI
 (ties: average purity) is kept.
 
@@ -38,9 +38,9 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from .._version import __version__
-from ..assignment import assign
 from ..config import ShadowCorrConfig
-from ..metrics import summarize
+from ..evaluation import summarize
+from ..pipeline import assign
 from ..nn import ModelCard, NetConfig, ShadowCorrNet, load_model, save_model
 from ..nn.checkpoint import REFERENCE_FEATURES
 from .dataset import TrainScene, find_bundles, prepare_scenes, training_pipeline
@@ -270,7 +270,7 @@ class Trainer:
                 "graph": {"weight": cfg.loss.w_graph, "k": cfg.loss.graph_k, "scale": cfg.loss.graph_scale,
                           "form": "-log sigmoid(scale * cos) on same-instance k-NN edges"},
             },  # fmt: skip
-            "target": "per-voxel object with the highest summed segment confidence (assignment.voxel_truth)",
+            "target": "per-voxel object with the highest summed segment confidence (evaluation.voxel_truth)",
             "optimizer": "Adam",
             "lr": cfg.lr,
             "batch": f"{cfg.batch_scenes} scene(s) per step",
