@@ -48,7 +48,7 @@ import numpy as np
 from ..bundle import Intrinsics, SceneBundle, View
 from ..errors import BundleError, Problem
 from ..io import images
-from ..io.bundle_files import write_bundle
+from ..io import write_bundle
 from ..poses import quaternion_to_matrix, slerp
 
 __all__ = [
