@@ -35,6 +35,7 @@ from clients.records import RecordWriter, UploadRecord, format_summary, percenti
 from clients.retry import is_retryable_exception
 from clients.upload import archive_content_type
 
+from .harness import free_port
 from .paths import REPO
 from .paths import SAMPLE_DIR as UE_SAMPLE
 from .scenes import sphere_scene
@@ -146,11 +147,7 @@ def test_connection_refused_is_retried_with_backoff_then_fails(unused_port):
 
 @pytest.fixture
 def unused_port() -> int:
-    import socket
-
-    with socket.socket() as s:  # bound then closed: nothing listens there for the test's duration
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_port()  # bound then closed: nothing listens there for the test's duration
 
 
 # --------------------------------------------------------------------------- request / response
