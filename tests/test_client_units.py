@@ -33,7 +33,7 @@ from clients import (
 from clients.client import correspond_params, error_from_response
 from clients.records import RecordWriter, UploadRecord, format_summary, percentile, read_records, summarize_records
 from clients.retry import is_retryable_exception
-from clients.upload import archive_content_type
+from clients.request_body import archive_content_type
 
 from .harness import free_port
 from .paths import REPO
