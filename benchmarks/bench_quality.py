@@ -1,5 +1,8 @@
 """Quality of every correspondence method across camera rigs, sensor noise and segmenter errors.
 
+(Over 500 lines on purpose: one runnable script - its condition catalogue, parallel runner and
+report are one benchmark definition that `tests/test_bench_quality.py` runs as a whole.)
+
     python benchmarks/bench_quality.py --quick                      # minutes: a subset, 3 scenes per cell
     python benchmarks/bench_quality.py                              # the full table, 30 scenes per cell
     python benchmarks/bench_quality.py --methods shadowcorr,projection --conditions 'syn:4v*,real:*'

@@ -1,4 +1,8 @@
-"""Tests of shadowcorr.nn: sparse conv, k-NN attention, the network and model files."""
+"""Tests of shadowcorr.nn: sparse conv, k-NN attention, the network and model files.
+
+(Over 500 lines on purpose: the tests of one package, sharing its fixtures and reference
+implementations; the packaged-model file has its own tests in test_model_file.py.)
+"""
 
 from __future__ import annotations
 
