@@ -6,6 +6,8 @@ import copy
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from ..nn import ModelCard, ShadowCorrNet, load_model, save_model
 
 __all__ = ["copy_with_card_update", "init_from_model"]
@@ -15,9 +17,10 @@ def init_from_model(net: ShadowCorrNet, path: str | Path) -> dict[str, Any]:
     """Copy the weights of a model file into ``net``; returns a provenance record.
 
     The architecture must match apart from the neighbourhood mode.  Starting a "grid"
-    network from a "reference" model, the non-centre kernel taps are zeroed: in the
-    reference they never acted (SPEC §3), so they hold untrained values, and with zeros
-    the grid network starts out computing exactly the reference's function.
+    network from a "reference" model, the reference's per-voxel weights become the centre
+    taps of the grid kernels and the other taps start at zero (a reference network has
+    none: they never acted, SPEC §3), so the grid network starts out computing exactly the
+    reference's function.
     """
     src = load_model(path)
     a, b = src.card.architecture, net.config
@@ -28,10 +31,9 @@ def init_from_model(net: ShadowCorrNet, path: str | Path) -> dict[str, Any]:
     if a.neighbourhood == "reference" and b.neighbourhood == "grid":
         for name in ("conv1", "conv2"):
             conv = getattr(net, name)
-            kern = state[f"{name}.kernel"]
-            centre = kern[conv.centre].clone()
-            kern.zero_()
-            kern[conv.centre] = centre
+            kernel = torch.zeros_like(conv.kernel)
+            kernel[conv.centre] = state[f"{name}.kernel"]
+            state[f"{name}.kernel"] = kernel
             zeroed.append(name)
     net.load_state_dict(state, strict=True)
     return {"path": str(path), "name": src.name, "version": src.version, "sha256": src.sha256,
