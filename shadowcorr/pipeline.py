@@ -65,6 +65,7 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
         t0 = time.perf_counter()
         surface = surface_evidence(bundle, segments, config)
         timings["surface_evidence"] = _ms_since(t0)
+    segments.pixel_segment = None  # the label images serve the surface evidence only: free them now
     if config.method == "projection":
         shells, shadows = raw_shells(segments), ShadowVoxels.empty()
     else:

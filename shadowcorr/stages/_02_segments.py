@@ -39,8 +39,9 @@ class Segments:
     optical_axis: np.ndarray  # (S, 3) float64, unit vector
     view_names: list[str]
     truth: np.ndarray | None = None  # (S,) int64 ground-truth object per segment, metrics only
-    # Per view: (H, W) int32 image of the segment index on each pixel (-1: no segment), for
-    # the cross-view surface evidence.  None for views without images (point flavour).
+    # Per view: (H, W) image of the segment index on each pixel (-1: no segment), for the
+    # cross-view surface evidence: int16 while the indices fit (half the memory of a large
+    # field's label images), else int32.  None for views without images (point flavour).
     pixel_segment: list[np.ndarray | None] | None = None
 
     @property
@@ -161,8 +162,9 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
     first_segment = 0
     for vi, view in enumerate(bundle.views):
         blobs = find_blobs(view.mask, config.split_components, config.min_blob_pixels, first_index=first_segment)
-        pixel_segment.append(blobs.labels)
         first_segment += blobs.lengths.size
+        fits = first_segment <= np.iinfo(np.int16).max
+        pixel_segment.append(blobs.labels.astype(np.int16) if fits else blobs.labels)
         if blobs.lengths.size == 0:
             continue
         # Back-project the pixels of a stride x stride grid, blob after blob, in raster order.
