@@ -9,7 +9,9 @@ The library is a pipeline of stages with plain data between them::
 The default method ``fused`` reads both the cross-view surface evidence and the network's
 volumetric evidence; ``ShadowCorrConfig.method`` selects another.
 
-``correspond(bundle)`` runs them all.  See ``docs/CONTRACTS.md`` and the README.
+``correspond(bundle)`` runs them all.  The stages themselves are in :mod:`shadowcorr.stages`,
+numbered in the order they run, and :mod:`shadowcorr.pipeline` composes them; see
+``docs/ARCHITECTURE.md``, ``docs/CONTRACTS.md`` and the README.
 
 Public names are imported lazily (PEP 562), so that light users such as the HTTP
 client can read ``shadowcorr.result`` without loading torch.
