@@ -38,7 +38,6 @@ def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="join this Ray cluster (auto, HOST:6379 or ray://HOST:10001) instead of starting one")
     p.add_argument("--actors", type=positive_int, default=1, help="Ray: network actors, each holding the model")
     p.add_argument("--batch-size", type=positive_int, default=8, help="Ray: prepared scenes per forward pass")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where the network runs")
     p.add_argument("--cameras", type=parse_cameras, help="cameras to use from Unreal-layout sets (default: all)")
     p.add_argument("--limit", type=positive_int, help="run at most this many scenes in this run")
     p.add_argument("--no-metrics", action="store_true", help="skip ground-truth metrics")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -103,6 +104,14 @@ def add_method_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-blob-pixels", type=int, help="ignore blobs with fewer pixels (default 50)")
     p.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
                    help="register the views' depth to each other and correct their poses first (default: the configuration's)")
+    p.add_argument("--device", default="cpu", type=_device,
+                   help="torch device of the network: cpu (default), cuda or cuda:N; the rest runs on the CPU")
+
+
+def _device(text: str) -> str:
+    if re.fullmatch(r"cpu|cuda(:\d+)?", text) is None:
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
+    return text
 
 
 def config_from_args(args: argparse.Namespace) -> "ShadowCorrConfig":
@@ -126,7 +135,7 @@ def _model(args: argparse.Namespace):
         return None
     from .nn import load_model
 
-    return load_model(args.model)
+    return load_model(args.model, device=args.device)
 
 
 # --------------------------------------------------------------------------- scenes

@@ -235,7 +235,8 @@ def load_model(path: str | Path | None = None, device: str | torch.device = "cpu
             dict, or ``None`` for the packaged default
             (``shadowcorr/models/default.safetensors``).  The layout is detected from
             the content.
-        device: where the network lives.
+        device: where the network lives (``"cpu"``, ``"cuda"``, ``"cuda:N"``); only the
+            network runs there, every other stage runs on the CPU.
 
     Returns:
         :class:`Model` with the network in eval mode, its card, and the sha256 of the file.
@@ -243,8 +244,13 @@ def load_model(path: str | Path | None = None, device: str | torch.device = "cpu
     Raises:
         FileNotFoundError: no such file.
         ValueError: unreadable file, invalid card, or a state dict that does not match
-            the card's architecture (the message names the offending keys).
+            the card's architecture (the message names the offending keys); a CUDA device
+            on a machine where torch sees no CUDA GPU.
     """
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {str(device)!r}: torch {torch.__version__} sees no CUDA GPU here "
+                         "(a CPU-only build, or no driver); use device 'cpu'")
     p = Path(path) if path is not None else DEFAULT_MODEL_PATH
     if not p.is_file():
         raise FileNotFoundError(f"model file not found: {p}")
@@ -256,7 +262,6 @@ def load_model(path: str | Path | None = None, device: str | torch.device = "cpu
     else:
         state, card = _read_reference(data, source), reference_card()
     net = _build(state, card, source)
-    dev = torch.device(device)
     net.to(dev).eval()
     return Model(net=net, card=card, sha256=sha, device=dev, path=p)
 
