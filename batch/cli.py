@@ -36,8 +36,12 @@ def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="worker processes (local) or CPUs of the local Ray instance (default: all cores)")
     p.add_argument("--ray-address", metavar="ADDR",
                    help="join this Ray cluster (auto, HOST:6379 or ray://HOST:10001) instead of starting one")
-    p.add_argument("--actors", type=positive_int, default=1, help="Ray: network actors, each holding the model")
-    p.add_argument("--batch-size", type=positive_int, default=8, help="Ray: prepared scenes per forward pass")
+    p.add_argument("--ray-plan", choices=("auto", "fused", "staged"), default="auto",  # ray_engine.RAY_PLANS
+                   help="Ray: fused (each scene one task; auto on CPU) or staged (prepare tasks, then network "
+                        "actors batching scenes; auto with --device cuda)")
+    p.add_argument("--actors", type=positive_int, default=1,
+                   help="Ray, staged: network actors, each holding the model")
+    p.add_argument("--batch-size", type=positive_int, default=8, help="Ray, staged: prepared scenes per forward pass")
     p.add_argument("--cameras", type=parse_cameras, help="cameras to use from Unreal-layout sets (default: all)")
     p.add_argument("--limit", type=positive_int, help="run at most this many scenes in this run")
     p.add_argument("--no-metrics", action="store_true", help="skip ground-truth metrics")
@@ -53,9 +57,9 @@ def options_from_args(args: argparse.Namespace) -> "BatchOptions":
     from .runner import BatchOptions
 
     return BatchOptions(
-        engine=args.engine, workers=args.workers, ray_address=args.ray_address, actors=args.actors,
-        batch_size=args.batch_size, model_path=args.model, device=args.device, config=config_from_args(args),
-        metrics=not args.no_metrics, cameras=args.cameras, limit=args.limit,
+        engine=args.engine, workers=args.workers, ray_address=args.ray_address, ray_plan=args.ray_plan,
+        actors=args.actors, batch_size=args.batch_size, model_path=args.model, device=args.device,
+        config=config_from_args(args), metrics=not args.no_metrics, cameras=args.cameras, limit=args.limit,
     )
 
 

@@ -5,7 +5,8 @@ Measured against the alternative (workers prepare and assign, the parent batches
 network; ``benchmarks/bench_batch.py --parent-network``): no faster on 2 cores (79 vs 83 s
 for 50 scenes, within the machine's noise) and more CPU per scene (shipping every voxel
 scene to the parent and back, a parent competing with the workers for the cores), since
-the forward pass is only about a tenth of a scene's CPU time; so the simpler design stays.
+the forward pass was about a tenth of a scene's CPU time (a quarter with the ``fused`` method);
+so the simpler design stays.
 """
 
 from __future__ import annotations
@@ -14,30 +15,27 @@ import multiprocessing as mp
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import TYPE_CHECKING, Iterable, Iterator
 
-from .stages import SceneTask, embed_tasks, finish_task, prepare_task, single_thread_numerics
+from .stages import SceneTask, process_model, run_scenes, single_thread_numerics
 
 if TYPE_CHECKING:
     from clients.records import UploadRecord
-    from shadowcorr.nn import Model
 
 __all__ = ["run_local"]
 
-_worker_model: "Model | None" = None
+_worker_model_key: tuple[str | None, str] | None = None  # (model_path, device) when the method needs the model
 
 
 def _init_worker(model_path: str | None, device: str, needs_model: bool) -> None:
-    global _worker_model
+    global _worker_model_key
     single_thread_numerics()
     if needs_model:
-        from shadowcorr.nn import load_model
-
-        _worker_model = load_model(model_path, device=device)
+        _worker_model_key = (model_path, device)
+        process_model(*_worker_model_key)  # now, not in the first scene's latency
 
 
 def _run_scene(task: SceneTask) -> "UploadRecord":
-    prepare_task(task)
-    embed_tasks(_worker_model, [task])
-    return finish_task(task)
+    (record,) = run_scenes([task], process_model(*_worker_model_key) if _worker_model_key else None)
+    return record
 
 
 def run_local(

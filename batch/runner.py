@@ -34,8 +34,9 @@ class BatchOptions:
     engine: Literal["local", "ray"] = "local"
     workers: int = 2  # processes (local) or the local Ray instance's CPUs
     ray_address: str | None = None
-    actors: int = 1  # Ray: network actors, each holding the model
-    batch_size: int = 8  # Ray: prepared scenes per forward pass
+    ray_plan: Literal["auto", "fused", "staged"] = "auto"  # Ray: whole scenes as tasks, or prepare tasks + actors
+    actors: int = 1  # Ray, staged: network actors, each holding the model
+    batch_size: int = 8  # Ray, staged: prepared scenes per forward pass
     model_path: str | None = None
     device: str = "cpu"
     config: ShadowCorrConfig = field(default_factory=ShadowCorrConfig)
@@ -77,7 +78,7 @@ def _engine_records(todo: Sequence[SceneSource], options: BatchOptions) -> Itera
         from .ray_engine import run_ray
 
         return run_ray(tasks, address=options.ray_address, workers=None if options.ray_address else options.workers,
-                       actors=options.actors, batch_size=options.batch_size, **common)
+                       plan=options.ray_plan, actors=options.actors, batch_size=options.batch_size, **common)
     if options.engine == "local":
         from .local import run_local
 
@@ -130,7 +131,11 @@ def describe_plan(run: BatchRun, input_path: str | Path, options: BatchOptions) 
     where = (f"Ray at {options.ray_address}" if options.engine == "ray" and options.ray_address
              else f"{options.engine} engine, {options.workers} workers")
     if options.engine == "ray":
-        where += f", {options.actors} network actor(s) of batch {options.batch_size}"
+        from .ray_engine import resolve_plan
+
+        plan = resolve_plan(options.ray_plan, options.device)
+        where += (f", {plan} plan" + (f", {options.actors} network actor(s) of batch {options.batch_size}"
+                                      if plan == "staged" else ""))
     return (f"{len(run.scenes)} scenes in {input_path}: {run.skipped} already done, "
             f"running {len(run.todo)} on the {where}" + (f" ({options.device})" if options.device != "cpu" else ""))
 

@@ -14,6 +14,7 @@ the network; ``tests/test_batch.py`` checks the labels).
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from dataclasses import dataclass, field
@@ -32,7 +33,8 @@ if TYPE_CHECKING:
     from clients.records import UploadRecord
     from shadowcorr.nn import Model
 
-__all__ = ["SceneTask", "prepare_task", "embed_tasks", "finish_task", "error_dict", "single_thread_numerics"]
+__all__ = ["SceneTask", "prepare_task", "embed_tasks", "finish_task", "run_scenes", "process_model", "error_dict",
+           "single_thread_numerics"]
 
 @dataclass
 class SceneTask:
@@ -141,6 +143,25 @@ def finish_task(task: SceneTask) -> "UploadRecord":
     # Through JSON text, not model_dump(): the results file must be strict JSON (NaN -> null).
     return UploadRecord(task.name, "ok", latency_ms=task.busy_ms, result=json.loads(result.model_dump_json()),
                         source=source)
+
+
+def run_scenes(tasks: Sequence[SceneTask], model: "Model | None") -> list["UploadRecord"]:
+    """Whole scenes in this process: read and prepare each, one forward pass over them all, cluster each."""
+    prepared = [prepare_task(t) for t in tasks]
+    return [finish_task(t) for t in embed_tasks(model, prepared)]
+
+
+@functools.lru_cache(maxsize=2)
+def process_model(model_path: str | None, device: str) -> "Model":
+    """The model, loaded once per process and kept for every later scene it runs.
+
+    A worker process (the local pool's, or a Ray task worker, which Ray keeps and reuses
+    across tasks and runs) pays for loading once; loading is tens of milliseconds once
+    torch is imported, so a process that runs whole scenes needs no actor to hold it.
+    """
+    from shadowcorr.nn import load_model
+
+    return load_model(model_path, device=device)
 
 
 def single_thread_numerics() -> None:

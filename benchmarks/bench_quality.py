@@ -6,6 +6,7 @@ report are one benchmark definition that `tests/test_bench_quality.py` runs as a
     python benchmarks/bench_quality.py --quick                      # minutes: a subset, 3 scenes per cell
     python benchmarks/bench_quality.py                              # the full table, 30 scenes per cell
     python benchmarks/bench_quality.py --methods shadowcorr,projection --conditions 'syn:4v*,real:*'
+    python benchmarks/bench_quality.py --methods 'fused,fused(fusion_split_views=0)' --quick   # a setting's effect
     python benchmarks/bench_quality.py --list                       # the conditions and what they are
 
 Rows are conditions, columns are methods.  A condition is a scene source and rig (synthetic
@@ -13,8 +14,9 @@ scenes from ``shadowcorr.synth`` on several rigs, or the real sample scene with 
 subsets) optionally followed by ``+perturbation`` (``shadowcorr.synth.perturb``: depth noise,
 holes, pose errors, mask erosion/dilation/splits/merges/drops), applied in memory to the
 clean scene with a fixed seed.  Each method runs through the public API,
-``shadowcorr.correspond(bundle, model, config=ShadowCorrConfig().with_options(method=m))``;
-a method this installation does not accept is skipped with one line.
+``shadowcorr.correspond(bundle, model, config=ShadowCorrConfig().with_options(method=m))``
+(a variant column, ``fused(key=value;...)``, changes those settings too); a method this
+installation does not accept is skipped with one line.
 
 Synthetic scenes use generator seeds training never saw (dataset seed 9001; the shipped
 model was trained, validated and tested on 1001, 2002 and 3003) and are cached under
@@ -38,6 +40,7 @@ import json
 import math
 import multiprocessing as mp
 import os
+import re
 import sys
 import time
 import zlib
@@ -149,18 +152,38 @@ def select(conditions: list[Condition], patterns: str | None) -> list[Condition]
 
 
 # ---------------------------------------------------------------- methods
+def split_methods(text: str) -> list[str]:
+    """The ``--methods`` list: commas separate methods, except inside a variant's parentheses."""
+    return [m.strip() for m in re.split(r",(?![^(]*\))", text) if m.strip()]
+
+
+def method_config(method: str):
+    """The configuration of a method column: a method name, or a variant with changed settings,
+    e.g. ``fused(fusion_cannot_link=0.8;fusion_split_views=0)`` (values read as JSON, else text)."""
+    from shadowcorr import ShadowCorrConfig
+
+    name, _, rest = method.partition("(")
+    options: dict[str, Any] = {"method": name.strip()}
+    for item in filter(None, (i.strip() for i in rest.rstrip(")").split(";"))):
+        key, _, value = item.partition("=")
+        try:
+            options[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key.strip()] = value.strip()
+    return ShadowCorrConfig().with_options(**options)
+
+
 def accepted_methods(requested: Iterable[str]) -> list[str]:
     """The requested methods this installation's ``ShadowCorrConfig`` accepts; one line per skipped one."""
     from pydantic import ValidationError
 
-    from shadowcorr import ShadowCorrConfig
-
     ok = []
     for m in requested:
         try:
-            ShadowCorrConfig().with_options(method=m)
-        except ValidationError:
-            print(f"skipping method {m!r}: not accepted by this shadowcorr's ShadowCorrConfig.method")
+            method_config(m)
+        except ValidationError as err:
+            print(f"skipping method {m!r}: not accepted by this shadowcorr's ShadowCorrConfig "
+                  f"({err.errors()[0]['loc']}: {err.errors()[0]['msg']})")
             continue
         ok.append(m)
     return ok
@@ -296,7 +319,6 @@ def _init_worker(model_path: str | None, threads: int) -> None:
 def run_task(task: Task) -> Task:
     """Load the scene, then every (condition, method) run on it; one record each."""
     import shadowcorr
-    from shadowcorr import ShadowCorrConfig
     from shadowcorr.convert import load_ue_scene
 
     clean = load_ue_scene(task.scene, REAL_SET, task.cameras) if task.cameras else shadowcorr.load_bundle(task.scene)
@@ -311,8 +333,7 @@ def run_task(task: Task) -> Task:
                     "method": method}
             t0, c0 = time.perf_counter(), time.process_time()
             try:
-                result = shadowcorr.correspond(bundle, _MODEL, config=ShadowCorrConfig().with_options(method=method),
-                                               metrics=True)
+                result = shadowcorr.correspond(bundle, _MODEL, config=method_config(method), metrics=True)
             except Exception as err:  # a method failing on one scene is a finding, not a crash of the table
                 task.records.append({**base, "error": f"{type(err).__name__}: {err}"})
                 continue
@@ -449,7 +470,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--scenes", type=int, default=None, help="synthetic scenes per cell (default 30, quick 3)")
     p.add_argument("--real-repeats", type=int, default=None,
                    help="perturbation seeds of the real scene's noisy rows (default 5, quick 2)")
-    p.add_argument("--methods", default=",".join(DEFAULT_METHODS), help="comma-separated method names")
+    p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
+                   help="comma-separated method names; a variant with changed settings is written "
+                   "'fused(fusion_cannot_link=0.8;fusion_split_views=0)'")
     p.add_argument("--conditions", default=None, help="comma-separated globs over condition names, e.g. 'syn:*,real:0246'")
     p.add_argument("--noise-rigs", default=",".join(NOISE_RIGS), help="rigs the perturbations are applied to")
     p.add_argument("--workers", type=int, default=2, help="evaluation (and generation) processes")
@@ -492,7 +515,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"scene cache ready in {t_generated - t_start:.0f} s")
         return 0
 
-    methods = accepted_methods([m.strip() for m in args.methods.split(",") if m.strip()])
+    methods = accepted_methods(split_methods(args.methods))
     if not methods:
         print("no usable method", file=sys.stderr)
         return 2

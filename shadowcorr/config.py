@@ -126,6 +126,15 @@ class ShadowCorrConfig(BaseModel):
                                       "groups in which they wear different mask ids")
     fusion_same_mask: float = Field(0.5, ge=0, description="bonus times the share of the views seeing both groups "
                                     "in which they wear one mask id (blobs of one mask)")
+    fusion_split_views: int = Field(2, ge=0, description="views in which two segments of one view with different "
+                                    "mask ids must co-land on one segment for their masks to count as one split mask "
+                                    "(0: never)")
+    fusion_split_landing: float = Field(0.8, gt=0, le=1, description="share of a segment's landings in a view that "
+                                        "must fall on one segment there for it to co-land")
+    fusion_split_share: float = Field(0.66, ge=0, le=1, description="... and the share of the views where both land "
+                                      "on a mask (see shadowcorr.grouping.split_mask_ids)")
+    fusion_split_cover: float = Field(0.1, gt=0, le=1, description="... while the segment they land on lands back on "
+                                      "each of them with this share of its landings in their view")
     fusion_threshold: float = Field(0.0, description="groups merge while their linkage exceeds this")
     fusion_confidence_slope: float = Field(4.0, gt=0, description="slope of the logistic turning a segment's "
                                            "linkage margin into its confidence")

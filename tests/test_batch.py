@@ -127,16 +127,19 @@ def _records_skipping_torn(path: Path) -> list[dict]:
 
 
 def test_ray_engine_labels_like_correspond_and_resumes(dataset, reference, ray_instance, tmp_path, capsys):
+    """Both Ray plans: the staged one (prepare tasks, an actor batching two scenes per forward
+    pass) is "interrupted" after three scenes, and the fused one (each scene one task) resumes."""
     out = tmp_path / "ray.jsonl"
-    args = ["batch", str(dataset), "--out", str(out), "--engine", "ray", "--batch-size", "2", "--no-progress"]
-    assert main(args + ["--limit", "3"]) == 0
+    args = ["batch", str(dataset), "--out", str(out), "--engine", "ray", "--no-progress"]
+    assert main(args + ["--ray-plan", "staged", "--batch-size", "2", "--limit", "3"]) == 0
     first = _records(out)
     assert sorted(r["scene"] for r in first) == ["rocks/field_0", "rocks/field_1", "rocks/field_2"]
+    assert "staged plan, 1 network actor(s) of batch 2" in capsys.readouterr().err
     assert main(args) == 1
     records = _records(out)
     assert sorted(r["scene"] for r in records[len(first):]) == ["spheres.zip", BROKEN], "finished scenes are not redone"
     _check_run(records, reference)
-    assert "3 already done, running 2 on the ray engine" in capsys.readouterr().err
+    assert "3 already done, running 2 on the ray engine, 2 workers, fused plan" in capsys.readouterr().err
 
 
 def test_ray_engine_without_ray_names_the_extra(dataset, tmp_path):
@@ -151,12 +154,18 @@ def test_ray_engine_without_ray_names_the_extra(dataset, tmp_path):
     assert not (tmp_path / "r.jsonl").exists()
 
 
-def test_cli_offers_every_engine_the_runner_knows():
+def test_cli_offers_every_engine_and_ray_plan_the_runner_knows():
     import argparse
 
     from batch.cli import add_batch_parser
     from batch.runner import ENGINES
 
+    from batch.ray_engine import RAY_PLANS, resolve_plan
+
     parser = add_batch_parser(argparse.ArgumentParser().add_subparsers())
-    engine = next(a for a in parser._actions if a.dest == "engine")
-    assert tuple(engine.choices) == ENGINES
+    choices = {a.dest: tuple(a.choices) for a in parser._actions if a.choices}
+    assert choices["engine"] == ENGINES and choices["ray_plan"] == RAY_PLANS
+    assert resolve_plan("auto", "cpu") == "fused" and resolve_plan("auto", "cuda") == "staged"
+    assert resolve_plan("staged", "cpu") == "staged"
+    with pytest.raises(ValueError, match="unknown Ray plan"):
+        resolve_plan("pipelined", "cpu")

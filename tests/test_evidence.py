@@ -11,7 +11,7 @@ from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle
 from shadowcorr.stages import (
     SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, link_components, sample_segment_points,
-    segment_confidence, surface_evidence,
+    segment_confidence, split_mask_ids, surface_evidence,
 )
 
 from .scenes import sphere_scene
@@ -159,6 +159,39 @@ def test_a_split_mask_is_joined_when_the_evidence_agrees():
     volume = [(a, b, 0.6, 1.0) for a in (0, 1) for b in (2, 3)]
     joined = agglomerate(_graph(view, instance, on_mask, hits, volume), strict)
     assert len(set(joined.tolist())) == 1
+
+
+def test_halves_that_co_land_in_two_views_count_as_one_mask_and_a_merge_in_one_view_does_not():
+    n = 100
+    config = ShadowCorrConfig(method="fused")
+    # Split: segments 0 and 1 (view 0, ids 1 and 2) both land on segment 2 (view 1) and 3 (view 2).
+    view, instance = np.array([0, 0, 1, 2]), np.array([1, 2, 1, 1])
+    on_mask = [[0, n, n], [0, n, n], [2 * n, 0, 2 * n], [2 * n, 2 * n, 0]]
+    hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 3, n), (2, 0, n), (2, 1, n), (2, 3, 2 * n),
+            (3, 0, n), (3, 1, n), (3, 2, 2 * n)]
+    graph = _graph(view, instance, on_mask, hits)
+    ids = split_mask_ids(graph.surface, view, instance, config)
+    assert ids[0] == ids[1] and ids.tolist()[2:] == [1, 1]
+    # Read as one mask, the halves join even under a strict cannot-link weight.
+    strict = config.with_options(fusion_cannot_link=0.9)
+    joined = agglomerate(_graph(view, ids, on_mask, hits), strict)
+    assert len(set(joined.tolist())) == 1
+    # Two views are asked for: with the threshold at three the halves keep their ids.
+    assert split_mask_ids(graph.surface, view, instance, config.with_options(fusion_split_views=3)).tolist() == [1, 2, 1, 1]
+
+    # A rock b half hidden behind its neighbour a: b's points pass for visible on a's segments,
+    # but a's segments, seen from view 0, land on a alone - no split.
+    hidden = [h for h in hits if h[:2] not in ((2, 1), (3, 1))]
+    hidden_surface = _graph(view, instance, on_mask, hidden).surface
+    assert split_mask_ids(hidden_surface, view, instance, config).tolist() == [1, 2, 1, 1]
+
+    # Merge: rocks P, Q apart in views 0 and 2, one merged mask in view 1 - they co-land in view 1 only.
+    view, instance = np.array([0, 0, 1, 2, 2]), np.array([1, 2, 1, 1, 2])
+    on_mask = [[0, n, n], [0, n, n], [2 * n, 0, 2 * n], [n, n, 0], [n, n, 0]]
+    hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 4, n), (2, 0, n), (2, 1, n), (2, 3, n), (2, 4, n),
+            (3, 0, n), (3, 2, n), (4, 1, n), (4, 2, n)]
+    graph = _graph(view, instance, on_mask, hits)
+    assert split_mask_ids(graph.surface, view, instance, config).tolist() == instance.tolist()
 
 
 def test_volumetric_evidence_alone_joins_and_separates():

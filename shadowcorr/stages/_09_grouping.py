@@ -28,7 +28,9 @@ Two ways to resolve the evidence, one per method:
     cuts one rock in two), and the share in which they wear one mask id (blobs of one mask),
     times ``fusion_same_mask``, is added - constraints, not rules: strong evidence from the
     other views can still join a split mask, and a tiny blob nothing else sees joins the
-    other blobs of its mask.
+    other blobs of its mask.  The mask ids the constraints read come from
+    :func:`split_mask_ids`: two masks of one view whose segments land together on one
+    segment in several other views count as one (split) mask.
 
 Each segment's ``confidence`` compares how strongly it is linked to its own group with the
 strongest alternative (another group, or standing alone); see :func:`segment_confidence`.
@@ -292,6 +294,77 @@ def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCo
     return 1.0 / (1.0 + np.exp(-config.fusion_confidence_slope * margin))
 
 
+def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndarray, config: ShadowCorrConfig
+                   ) -> np.ndarray:
+    """Mask ids for the per-view constraints, with masks that other views show to be one object made one id.
+
+    Two segments a and b of one view v with different mask ids *co-land* on a segment t of
+    another view when each lands mostly on t (``fusion_split_landing`` of its points that
+    land on a mask there, at least ``projection_min_points``) and t, seen from v, covers both:
+    at least ``fusion_split_cover`` of t's points landing on a mask in v land on a, and as
+    many on b.  A 2D segmenter that cut one rock in two leaves halves that co-land in most
+    views seeing both; two touching rocks co-land only where a third view merged their masks
+    (the cover test keeps out a rock half hidden behind its neighbour: the neighbour's
+    surface lands on the neighbour alone; the high landing share keeps out a rock whose
+    points, in noisy depth, pass for visible just behind its neighbour).  When a and b co-land in at least
+    ``fusion_split_views`` views and in at least ``fusion_split_share`` of the views where
+    both land on a mask, b's id is taken to be a's for the constraints (blobs of one mask):
+    the surface and volumetric evidence still decide whether they join.
+    """
+    s = view.size
+    out = instance.copy()
+    if s == 0 or surface.hit_count.size == 0 or config.fusion_split_views == 0:
+        return out
+    a, t, hits = surface.hit_source, surface.hit_target, surface.hit_count
+    landed = surface.on_mask[a, view[t]]
+    strong = (landed >= config.projection_min_points) & (hits >= config.fusion_split_landing * landed)
+    # Pairs of same-view sources landing mostly on one target: group the strong hits by (target, source view).
+    a, t = a[strong], t[strong]
+    key = t * (int(view.max()) + 1) + view[a]
+    order = np.lexsort((a, key))
+    a, t, key = a[order], t[order], key[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    sizes = np.diff(np.r_[starts, key.size])
+    first, second, target = [], [], []
+    for size in np.unique(sizes[sizes >= 2]):  # a few distinct group sizes: a loop over sizes, not pairs
+        at = starts[sizes == size]
+        i, j = np.triu_indices(size, k=1)
+        first.append(a[(at[:, None] + i[None, :]).ravel()])
+        second.append(a[(at[:, None] + j[None, :]).ravel()])
+        target.append(t[(at[:, None] + i[None, :]).ravel()])
+    if not first:
+        return out
+    p, q, t = np.concatenate(first), np.concatenate(second), np.concatenate(target)
+    # The target must cover both: its landings in their view, on each of them.
+    hit_key = surface.hit_source * s + surface.hit_target
+    by_key = np.argsort(hit_key)
+
+    def hits_from(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+        k = src * s + dst
+        at = np.minimum(np.searchsorted(hit_key, k, sorter=by_key), hit_key.size - 1)
+        found = hit_key[by_key[at]] == k
+        return np.where(found, surface.hit_count[by_key[at]], 0)
+
+    cover = config.fusion_split_cover * surface.on_mask[t, view[p]]
+    keep = (instance[p] != instance[q]) & (hits_from(t, p) >= cover) & (hits_from(t, q) >= cover) & (cover > 0)
+    p, q = p[keep], q[keep]
+    pair, colanding = np.unique(p * s + q, return_counts=True)
+    p, q = pair // s, pair % s
+    both = ((surface.on_mask[p] >= config.projection_min_points)
+            & (surface.on_mask[q] >= config.projection_min_points)).sum(axis=1)
+    split = (colanding >= config.fusion_split_views) & (colanding >= config.fusion_split_share * both)
+    if not split.any():
+        return out
+    graph = coo_matrix((np.ones(int(split.sum())), (p[split], q[split])), shape=(s, s))
+    _, comp = connected_components(graph, directed=False)
+    # Every segment of a component takes the smallest id of its members (ids compared within a view only).
+    smallest = np.full(comp.max() + 1, np.iinfo(np.int64).max)
+    np.minimum.at(smallest, comp, instance)
+    joined = np.bincount(comp, minlength=comp.max() + 1)[comp] > 1
+    out[joined] = smallest[comp[joined]]
+    return out
+
+
 def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: ShadowCorrConfig
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Group label and confidence of every segment from the evidence between segments.
@@ -307,7 +380,10 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
     volume = (none, none, np.zeros(0), np.zeros(0))
     if config.method == "fused":
         volume = volume_pairs(scene, embeddings, config)
-    graph = SegmentGraph(scene.segment_view, scene.segment_instance, scene.surface, *volume)
+    instance = scene.segment_instance
+    if config.method == "fused":
+        instance = split_mask_ids(scene.surface, scene.segment_view, instance, config)
+    graph = SegmentGraph(scene.segment_view, instance, scene.surface, *volume)
     if config.method == "projection":
         labels = link_components(scene.surface, scene.segment_view, config)
     else:

@@ -74,6 +74,7 @@ _EXPORTS = {
     "group_by_evidence": "_09_grouping",
     "link_components": "_09_grouping",
     "segment_confidence": "_09_grouping",
+    "split_mask_ids": "_09_grouping",
     "cluster_voxels": "_09_clustering",
     "majority_vote": "_09_clustering",
     "mean_shift": "_09_clustering",
@@ -101,7 +102,9 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._07_network import baseline_embeddings, check_compatible, embed, model_info
     from ._08_volume_evidence import segment_embeddings, volume_pairs
     from ._09_clustering import cluster_voxels, majority_vote, mean_shift, merge_small_clusters
-    from ._09_grouping import SegmentGraph, agglomerate, group_by_evidence, link_components, segment_confidence
+    from ._09_grouping import (
+        SegmentGraph, agglomerate, group_by_evidence, link_components, segment_confidence, split_mask_ids,
+    )
     from ._10_assignment import (
         evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote,
     )
