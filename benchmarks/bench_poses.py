@@ -9,7 +9,7 @@ synthetic scenes (``shadowcorr.synth``, exact ground truth) and on the real samp
   views): relative to the common motion of all cameras, which no image can reveal (the
   figure refinement is asked to bring under 0.1 deg and 1 cm), and absolute;
 * CPU time of ``refine_poses`` per scene, on one thread (``time.process_time``; the
-  machine may be shared, so wall time is printed too);
+  machine may be shared, so wall time and the load average are printed too);
 * the average purity of ``correspond`` with ``refine_poses`` off and on, per error level.
 
     python benchmarks/bench_poses.py --synth-scenes 4 --seeds 2
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import time
 
 import numpy as np
@@ -113,6 +114,7 @@ def main() -> None:
     for label, sel in (("4-view 1080p", lambda r: len(r[12]) == 4), ("8-view 1080p", lambda r: len(r[12]) == 8)):
         if any(sel(r) for r in rows):
             print(f"{label:<14} cpu {stats(gather(sel, 8))}   wall {stats(gather(sel, 9))}")
+    print("load average (1, 5, 15 min): " + ", ".join(f"{x:.1f}" for x in os.getloadavg()))
 
     if model is not None:
         print("\naverage purity, mean over scenes and seeds: refine_poses off -> on")

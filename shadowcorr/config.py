@@ -36,7 +36,7 @@ class ShadowCorrConfig(BaseModel):
     pose_max_rotation_deg: float = Field(5.0, gt=0, le=30, description="larger corrections are refused (the pose is kept)")
     pose_max_translation: float = Field(50.0, gt=0, description="camera centre moves beyond this are refused (units)")
     pose_min_rotation_deg: float = Field(0.1, ge=0, description="when no view needs more (and no more than pose_min_translation), all poses are kept")
-    pose_min_translation: float = Field(1.0, ge=0, description="see pose_min_rotation_deg (units)")
+    pose_min_translation: float = Field(1.0, ge=0, description="see pose_min_rotation_deg: how far a correction may move the view's surface (units)")
     pose_min_overlap: float = Field(0.2, gt=0, le=1, description="view pairs sharing less of their surface are not registered")
     pose_max_residual: float = Field(5.0, gt=0, description="registrations fitting worse (RMS point-to-plane, units) are not used")
 

@@ -5,15 +5,24 @@ range, 2 degrees moves points by 24-35 cm and whole views stop overlapping in th
 shadow grid.  Every view sees the ground and the rocks, and neighbouring views share
 much of that surface, so the views can be registered to each other:
 
-1. **Clouds.**  Each view's *full* depth image (terrain included, not only the masked
-   pixels) is sampled on a pixel grid, back-projected with the declared pose into the
-   world frame (configuration units, centred on the scene) and thinned to one point per
-   ``pose_point_spacing`` cell; small_gicp estimates each point's local covariance.
-2. **Pairs.**  Pairs whose coarse occupancy overlaps by at least ``pose_min_overlap``
-   are registered with GICP (small_gicp), coarse to fine.  A registration is used only
-   when it converged, the surfaces overlap enough afterwards, the RMS point-to-plane
-   residual is under ``pose_max_residual`` and the surface constrains all six degrees
-   of freedom (the normalised GICP Hessian is not degenerate).
+1. **Surfaces.**  Each view's *full* depth image (terrain included, not only the masked
+   pixels) is sampled on a regular pixel grid (about 20 000 samples) and back-projected
+   with the declared pose into the world frame (configuration units, centred on the
+   scene).  The grid keeps the image layout, so each sample's normal comes from its grid
+   neighbours (none across a depth edge), and any world point can be matched with the
+   view's surface by projecting it into the camera: no search structure is needed.
+2. **Pairs.**  Views sharing at least ``pose_min_overlap`` of their coarse cells are
+   candidates (counted for all pairs at once by one sparse product); each view keeps its
+   ``_MAX_PARTNERS`` best candidates plus a maximum spanning forest, so registrations grow
+   linearly with the views.  Each pair is registered coarse to fine: GICP (small_gicp) on
+   clouds thinned to ``3 x pose_point_spacing`` with a wide matching distance (as far as
+   the largest allowed pose error moves a point) brings the surfaces within a few
+   centimetres; point-to-plane Gauss-Newton on every other grid sample, matched by
+   projection into the other view (normals within 60 degrees, within
+   ``pose_point_spacing``), finishes.  A registration is used only when the surfaces
+   overlap enough afterwards, the RMS point-to-plane residual is under
+   ``pose_max_residual`` and the surface constrains all six degrees of freedom (the
+   point-to-plane information matrix is not degenerate).
 3. **Pose graph.**  Each accepted pair (i, j) measures ``T_ij``, the world-frame motion
    that brings view i's surface onto view j's, which ties the corrections:
    ``C_i = C_j T_ij``.  Rotations are averaged in the Lie algebra (iterated linear least
@@ -25,9 +34,10 @@ much of that surface, so the views can be registered to each other:
    as it would with one view held fixed); the common motion of all cameras is invisible
    in the images and so is never "corrected".  Edges that disagree with the solution are
    dropped one at a time (worst first) and the graph solved again.
-4. **Bounds and honesty.**  When no view would move by more than ``pose_min_rotation_deg``
-   and ``pose_min_translation`` (what registration itself resolves), every pose is kept
-   exactly (``unchanged``): clean poses are not perturbed by registration noise.  A view
+4. **Bounds and honesty.**  When no view of a connected group would move by more than
+   ``pose_min_rotation_deg`` and ``pose_min_translation`` (what registration itself
+   resolves), the group's poses are kept exactly (``unchanged``): clean poses are not
+   perturbed by registration noise, and separate places are judged apart.  A view
    whose correction exceeds ``pose_max_rotation_deg`` or ``pose_max_translation`` keeps
    its pose (``correction_too_large``); a view left
    without an accepted pair keeps its pose (``not_registered``); both are removed from
@@ -35,9 +45,10 @@ much of that surface, so the views can be registered to each other:
    correction, residual, overlap) and a warning when it still disagrees with its
    neighbours.
 
-Work is bounded: the clouds have a few thousand points per view, each pair is
-registered with at most ``_COARSE_ITERATIONS + _FINE_ITERATIONS`` GICP iterations on one
-thread, and the pose graph has six unknowns per view.
+Work is bounded and vectorised: about 20 000 samples per view, at most
+``_COARSE_ITERATIONS`` GICP iterations (one thread) and ``2 x _FINE_ITERATIONS``
+point-to-plane steps per pair, at most a few pairs per view, and a sparse pose graph with
+six unknowns per view.  ``benchmarks/bench_poses.py`` measures time and accuracy.
 """
 
 from __future__ import annotations
@@ -47,7 +58,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import small_gicp
-from pykdtree.kdtree import KDTree
+from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
 from ..bundle import SceneBundle, View, unit_scale
@@ -55,37 +68,62 @@ from ..config import ShadowCorrConfig
 from ..result import ViewPoseCorrection
 from ._02_segments import back_project
 
-#: Pixels sampled per view before thinning (a regular grid; about 1 in 100 of a 1080p image).
+#: Pixels sampled per view (a regular grid; about 1 in 100 of a 1080p image).
 _SAMPLED_PIXELS = 20_000
-#: Neighbours for small_gicp's per-point covariance estimate.
+#: Neighbours for small_gicp's per-point covariance estimate (coarse pass).
 _COVARIANCE_NEIGHBOURS = 10
-#: The coarse pass runs on clouds this many times sparser than the fine one.
+#: The coarse pass (small_gicp GICP) runs on clouds thinned to this many point spacings.
 _COARSE_SPACING = 3.0
 _COARSE_ITERATIONS = 20
-_FINE_ITERATIONS = 4
-#: Fine correspondence distance, in units of ``pose_point_spacing``.
-_FINE_MATCH = 1.0
-#: Convergence: the coarse pass stops when a step rotates less than this (degrees) and
-#: moves less than this share of the spacing; the fine pass at a tenth of both.
+#: Convergence of the coarse pass: a step rotating less than this (degrees) and moving less
+#: than this share of the point spacing.
 _COARSE_STOP_DEG = 0.05
 _COARSE_STOP_SPACING = 1.0 / 32.0
+#: Fine pass (point-to-plane, projective association): at most this many iterations per phase, and
+#: a phase stops earlier once a step moves the surface by less than this share of the point spacing.
+_FINE_ITERATIONS = 6
+_FINE_STOP_SPACING = 1.0 / 200.0
+#: Fine correspondence distance, in units of ``pose_point_spacing``.
+_FINE_MATCH = 1.0
+#: A grid neighbour further than this many times the sample spacing at its depth is across a
+#: depth edge: no normal there.
+_EDGE_RATIO = 4.0
 #: A pair is degenerate when the weakest direction of its point-to-plane information carries
 #: less than this share of the strongest (a flat or a cylindrical surface).
 _MIN_CONSTRAINT_RATIO = 1e-3
+#: Each view is registered with at most this many partners (those sharing the most surface),
+#: plus whatever keeps the overlap graph connected: registrations grow linearly with the views.
+_MAX_PARTNERS = 3
+#: The fine pass moves every this many grid points per axis (and matches them against all).
+_MOVING_STRIDE = 2
+#: The fine pass's first steps move a quarter of those points, until a step moves less than this
+#: many times the final stop (moving them all then shifts the result by about a centimetre anyway).
+_QUARTER_STOP = 10.0
 
 
 @dataclass
 class _Cloud:
-    """One view's surface at two densities (GICP clouds with covariances and k-d trees)."""
+    """One view's surface in the centred world frame (config units), coordinates in rows (3, N).
 
-    fine: small_gicp.PointCloud
-    fine_tree: small_gicp.KdTree
+    ``grid``/``normal_grid`` keep the depth image's pixel-grid layout (flattened), so that a point
+    is associated with this view's surface by projecting it into the camera (no search);
+    ``points`` is every other grid point (the moving side of the fine pass); ``coarse`` is the
+    thinned small_gicp cloud of the coarse pass.
+    """
+
+    grid: np.ndarray  # (3, h * w) points of the sampled pixel grid (NaN where the depth is invalid)
+    normal_grid: np.ndarray  # (3, h * w) unit normals (NaN where unknown: invalid depth or a depth edge)
+    shape: tuple[int, int]  # (h, w) of the grid
+    points: np.ndarray  # (3, N) every other grid point (per axis) that has a normal
+    normals: np.ndarray  # (3, N) their normals
+    quarter: int  # the first this many of them are every other one per axis (a quarter)
+    rotation: np.ndarray  # (3, 3) camera to world
+    camera: np.ndarray  # (3, 1) camera centre
+    projection: np.ndarray  # (fx, fy, cx, cy) onto grid indices: column = fx x / z + cx
     coarse: small_gicp.PointCloud
     coarse_tree: small_gicp.KdTree
-    points: np.ndarray  # (N, 3) the fine cloud, centred world frame, config units
-    normals: np.ndarray  # (N, 3)
-    nearest: KDTree  # over ``points``, for overlap and residual
-    cells: np.ndarray  # sorted unique cell keys at the coarse match distance (overlap pre-check)
+    reach: float  # median distance of the surface from the camera: the lever of a rotation error
+    cells: np.ndarray  # unique cell keys at the coarse match distance (overlap pre-check)
 
 
 @dataclass
@@ -94,19 +132,46 @@ class _Pair:
     target: int
     transform: np.ndarray  # (4, 4) centred frame: source surface -> target surface
     residual: float  # RMS point-to-plane, config units
-    overlap: float  # share of source points with a target point within the fine match distance
+    overlap: float  # share of the source's points within the fine match distance of the target's surface
+    centre: np.ndarray  # (3,) centroid of the matched surface (centred frame)
+    extent: float  # RMS distance of the matched surface from ``centre``: the lever of a rotation
+    weight: float  # in the pose graph: overlap / residual, the residual floored at what registration resolves
 
 
-def _view_points(view: View, max_depth_bundle: float) -> np.ndarray:
-    """World points (bundle units) of a regular pixel grid of the view's valid depth."""
+def _view_grid(view: View, max_depth_bundle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """A regular pixel grid of the view's depth: world points (bundle units) as (3, h, w) and
+    z-depths as (h, w), both NaN where invalid; the grid's pixel rows and columns and its stride."""
     height, width = view.depth.shape
     stride = max(1, int(round(np.sqrt(height * width / _SAMPLED_PIXELS))))
     rows = np.arange(stride // 2, height, stride)
     cols = np.arange(stride // 2, width, stride)
     depth = view.depth[np.ix_(rows, cols)].astype(np.float64)
-    valid = np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle)
-    vv, uu = np.nonzero(valid)
-    return back_project(view, rows[vv].astype(np.float64), cols[uu].astype(np.float64), depth[vv, uu])
+    depth[~(np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle))] = np.nan
+    vv = np.broadcast_to(rows[:, None].astype(np.float64), depth.shape)
+    uu = np.broadcast_to(cols[None, :].astype(np.float64), depth.shape)
+    grid = back_project(view, vv, uu, depth)  # per-axis arrays stacked on axis 1: (h, 3, w)
+    return np.ascontiguousarray(grid.transpose(1, 0, 2)), depth, rows, cols, stride
+
+
+def _grid_normals(grid: np.ndarray, depth: np.ndarray, camera: np.ndarray, spacing_per_depth: float) -> np.ndarray:
+    """(3, h, w) unit normals (facing the camera) of a (3, h, w) point grid from its central
+    differences; NaN at the border, next to invalid depth and across depth edges (neighbours
+    further apart than ``_EDGE_RATIO`` sample spacings, ``spacing_per_depth`` x depth)."""
+    along = grid[:, 1:-1, 2:] - grid[:, 1:-1, :-2]
+    down = grid[:, 2:, 1:-1] - grid[:, :-2, 1:-1]
+    limit = (2.0 * _EDGE_RATIO * spacing_per_depth * depth[1:-1, 1:-1]) ** 2
+    cross = np.stack([along[1] * down[2] - along[2] * down[1],
+                      along[2] * down[0] - along[0] * down[2],
+                      along[0] * down[1] - along[1] * down[0]])
+    facing = np.einsum("i...,i...->...", camera[:, None, None] - grid[:, 1:-1, 1:-1], cross)
+    length = np.sqrt(np.einsum("i...,i...->...", cross, cross))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = (np.einsum("i...,i...->...", along, along) < limit) & (np.einsum("i...,i...->...", down, down) < limit) \
+            & (length > 0)
+        scale = np.where(ok, np.sign(facing) / length, np.nan)
+    normals = np.full(grid.shape, np.nan)
+    normals[:, 1:-1, 1:-1] = cross * scale
+    return normals
 
 
 def _cell_keys(points: np.ndarray, cell: float) -> np.ndarray:
@@ -114,126 +179,307 @@ def _cell_keys(points: np.ndarray, cell: float) -> np.ndarray:
     return np.unique((idx[:, 0] << 42) | (idx[:, 1] << 21) | idx[:, 2])
 
 
-def _coarse_match_distance(config: ShadowCorrConfig, radius: float) -> float:
-    """How far the largest allowed pose error can move a surface point ``radius`` from the scene centre."""
+def _coarse_match_distance(config: ShadowCorrConfig, reach: float) -> float:
+    """How far the largest allowed pose error can move a surface point ``reach`` from its camera."""
     return max(4.0 * config.pose_point_spacing,
-               config.pose_max_translation + radius * np.deg2rad(config.pose_max_rotation_deg))
+               config.pose_max_translation + reach * np.deg2rad(config.pose_max_rotation_deg))
 
 
-def _gicp_cloud(points: np.ndarray, spacing: float) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
-    cloud = small_gicp.voxelgrid_sampling(points, spacing, 1)
-    tree = small_gicp.KdTree(cloud, 1)
-    if cloud.size() > _COVARIANCE_NEIGHBOURS:
-        small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=_COVARIANCE_NEIGHBOURS, num_threads=1)
-    return cloud, tree
-
-
-def _make_cloud(points: np.ndarray, config: ShadowCorrConfig, coarse: float) -> _Cloud | None:
-    fine, fine_tree = _gicp_cloud(points, config.pose_point_spacing)
-    sparse, sparse_tree = _gicp_cloud(points, _COARSE_SPACING * config.pose_point_spacing)
-    if sparse.size() < 4 * _COVARIANCE_NEIGHBOURS:
+def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int], centre: np.ndarray,
+                scale: float, config: ShadowCorrConfig) -> _Cloud | None:
+    """The view's cloud from its sampled grid (``_view_grid``), in the centred config-unit frame."""
+    grid, depth, rows, cols, stride = sampled
+    grid = grid * scale - centre[:, None, None]
+    camera = view.camera_center * scale - centre
+    k = view.intrinsics
+    normals = _grid_normals(grid, depth * scale, camera, stride / max(k.fx, k.fy))
+    # Moving points: every _MOVING_STRIDE-th grid point with a normal, those of twice the stride first.
+    step = _MOVING_STRIDE
+    index = np.arange(depth.size).reshape(depth.shape)[::step, ::step]
+    moving = np.isfinite(normals[0])[::step, ::step]
+    rest = moving.copy()
+    rest[::2, ::2] = False  # every other moving point per axis comes first
+    order = np.r_[index[::2, ::2][moving[::2, ::2]], index[rest]]
+    if order.size < 4 * _COVARIANCE_NEIGHBOURS:
         return None
-    pts = np.asarray(fine.points())[:, :3]
-    return _Cloud(fine, fine_tree, sparse, sparse_tree, pts, np.asarray(fine.normals())[:, :3], KDTree(pts),
-                  _cell_keys(pts, coarse))
+    points, moving_normals = grid.reshape(3, -1)[:, order], normals.reshape(3, -1)[:, order]
+    coarse = small_gicp.voxelgrid_sampling(points.T, _COARSE_SPACING * config.pose_point_spacing, 1)
+    if coarse.size() < 4 * _COVARIANCE_NEIGHBOURS:
+        return None
+    coarse_tree = small_gicp.KdTree(coarse, 1)
+    small_gicp.estimate_covariances(coarse, coarse_tree, num_neighbors=_COVARIANCE_NEIGHBOURS, num_threads=1)
+    # Grid index of a pixel: (pixel - first) / stride, so fold that into the intrinsics.
+    projection = np.array([k.fx / stride, k.fy / stride, (k.cx - cols[0]) / stride, (k.cy - rows[0]) / stride])
+    reach = float(np.median(np.sqrt(np.einsum("ij,ij->j", points - camera[:, None], points - camera[:, None]))))
+    return _Cloud(grid.reshape(3, -1), normals.reshape(3, -1), depth.shape, points, moving_normals,
+                  order.size - int(rest.sum()), view.pose[:3, :3].copy(), camera[:, None], projection, coarse, coarse_tree,
+                  reach, np.zeros(0, dtype=np.int64))
 
 
-def _constraint_ratio(points: np.ndarray, normals: np.ndarray, radius: float) -> float:
+def _rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """Rodrigues: the 3x3 rotation of a rotation vector (radians)."""
+    angle = float(np.linalg.norm(rotvec))
+    skew = np.array([[0.0, -rotvec[2], rotvec[1]], [rotvec[2], 0.0, -rotvec[0]], [-rotvec[1], rotvec[0], 0.0]])
+    if angle < 1e-12:
+        return np.eye(3) + skew
+    return np.eye(3) + np.sin(angle) / angle * skew + (1.0 - np.cos(angle)) / angle**2 * (skew @ skew)
+
+
+def _rotation_angle(rotations: np.ndarray) -> np.ndarray:
+    """Angles (radians) of (..., 3, 3) rotations, accurate at small angles too: atan2(2 sin, 2 cos)."""
+    axis = np.stack([rotations[..., 2, 1] - rotations[..., 1, 2], rotations[..., 0, 2] - rotations[..., 2, 0],
+                     rotations[..., 1, 0] - rotations[..., 0, 1]], axis=-1)
+    return np.arctan2(np.linalg.norm(axis, axis=-1), np.trace(rotations, axis1=-2, axis2=-1) - 1.0)
+
+
+def _constraint_ratio(points: np.ndarray, normals: np.ndarray, centre: np.ndarray, extent: float) -> float:
     """How well matched surface patches pin all six degrees of freedom: weakest / strongest
-    eigenvalue of the point-to-plane information matrix (rotations as motions at ``radius``).
+    eigenvalue of the point-to-plane information matrix (rotations about ``centre`` as
+    motions at ``extent``).
 
     A plane leaves three directions free (ratio near 0), a cylinder one; ground with relief
     and rocks on it pins all of them.
     """
-    jac = np.concatenate([np.cross(points / radius, normals), normals], axis=1)
+    jac = np.concatenate([np.cross((points - centre) / extent, normals), normals], axis=1)
     eig = np.linalg.eigvalsh(jac.T @ jac)
     return float(eig[0] / eig[-1]) if eig[-1] > 0 else 0.0
 
 
-def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, radius: float) -> tuple[_Pair | None, str]:
-    """GICP source -> target, coarse to fine; None (and why) when the result is not trustworthy."""
+def _matches(source: _Cloud, target: _Cloud, transform: np.ndarray, match: float, count: int | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Projective association: the source's (first ``count``) moving points, moved by ``transform``,
+    are projected into the target camera and matched with the target's grid sample there.
+
+    Kept: matches within ``match`` of each other and facing the same way (normals within 60
+    degrees, which keeps points hidden from the target from matching the surface in front of
+    them; a sample without a normal matches nothing).  Returns (3, M) moved points, target
+    points and target normals.
+    """
+    rot, shift = transform[:3, :3], transform[:3, 3]
+    # Straight into the target camera's frame: R_t^T (T p - c_t).
+    to_camera = target.rotation.T @ rot
+    local = to_camera @ source.points[:, :count] + (target.rotation.T @ (shift - target.camera[:, 0]))[:, None]
+    fx, fy, cx, cy = target.projection
+    h, w = target.shape
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv_z = 1.0 / local[2]
+        col = np.rint(fx * local[0] * inv_z + cx)
+        row = np.rint(fy * local[1] * inv_z + cy)
+    index = np.flatnonzero((local[2] > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
+    flat = (row[index] * w + col[index]).astype(np.int64)
+    matched, normals = target.grid[:, flat], target.normal_grid[:, flat]
+    moved = rot @ source.points[:, index] + shift[:, None]
+    gap = moved - matched
+    with np.errstate(invalid="ignore"):
+        keep = (np.einsum("ij,ij->j", gap, gap) <= match * match) \
+            & (np.einsum("ij,ij->j", rot @ source.normals[:, index], normals) > 0.5)
+    return moved[:, keep], matched[:, keep], normals[:, keep]
+
+
+def _point_to_plane(source: _Cloud, target: _Cloud, transform: np.ndarray, match: float, stop: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Refine ``transform`` (source surface -> target surface) by point-to-plane Gauss-Newton with
+    projective association; returns it and its final matches (``_matches``).
+
+    The first iterations move a quarter of the points (every other one per axis) until a step
+    moves the surface by less than ``_QUARTER_STOP`` x ``stop``; the rest move them all, until ``stop``.
+    """
+    for count, until in ((source.quarter, _QUARTER_STOP * stop), (None, stop)):
+        transform = _gauss_newton(source, target, transform, match, count, until)
+    return (transform, *_matches(source, target, transform, match))
+
+
+def _gauss_newton(source: _Cloud, target: _Cloud, transform: np.ndarray, match: float, count: int | None,
+                  stop: float) -> np.ndarray:
+    """At most ``_FINE_ITERATIONS`` point-to-plane Gauss-Newton steps on the first ``count`` moving
+    points, until one moves the matched surface by less than ``stop``."""
+    for _ in range(_FINE_ITERATIONS):
+        moved, matched, normals = _matches(source, target, transform, match, count)
+        if moved.shape[1] < 6:
+            break
+        centre = moved.mean(axis=1, keepdims=True)
+        arm = moved - centre
+        # Rows of the Jacobian: d(residual)/d(rotation about centre) = arm x normal, d/d(shift) = normal.
+        jac = np.concatenate([arm[1:2] * normals[2:3] - arm[2:3] * normals[1:2],
+                              arm[2:3] * normals[0:1] - arm[0:1] * normals[2:3],
+                              arm[0:1] * normals[1:2] - arm[1:2] * normals[0:1], normals])
+        err = np.einsum("ij,ij->j", moved - matched, normals)
+        # Regularised by a hair: a degenerate surface is caught afterwards by the constraint ratio.
+        hessian = jac @ jac.T
+        step = -np.linalg.solve(hessian + 1e-9 * np.trace(hessian) * np.eye(6), jac @ err)
+        rot = _rotation_matrix(step[:3])
+        update = np.eye(4)
+        update[:3, :3] = rot
+        update[:3, 3] = centre[:, 0] - rot @ centre[:, 0] + step[3:]
+        transform = update @ transform
+        extent = np.sqrt(np.mean(np.einsum("ij,ij->j", arm, arm)))
+        if np.linalg.norm(step[:3]) * extent + np.linalg.norm(step[3:]) < stop:
+            break
+    return transform
+
+
+def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig) -> tuple[_Pair | None, str]:
+    """Coarse GICP (small_gicp, thinned clouds, wide matching), then point-to-plane on the moving
+    grid samples (``_point_to_plane``); None (and why) when the result is not trustworthy."""
     spacing = config.pose_point_spacing
-    stop_rad, stop_len = np.deg2rad(_COARSE_STOP_DEG), _COARSE_STOP_SPACING * spacing
+    coarse = _coarse_match_distance(config, max(source.reach, target.reach))
     result = small_gicp.align(target.coarse, source.coarse, target.coarse_tree, registration_type="GICP",
-                              max_correspondence_distance=_coarse_match_distance(config, radius), num_threads=1,
-                              max_iterations=_COARSE_ITERATIONS, rotation_epsilon=stop_rad, translation_epsilon=stop_len)
+                              max_correspondence_distance=coarse, num_threads=1, max_iterations=_COARSE_ITERATIONS,
+                              rotation_epsilon=np.deg2rad(_COARSE_STOP_DEG),
+                              translation_epsilon=_COARSE_STOP_SPACING * spacing)
     fine = _FINE_MATCH * spacing
-    result = small_gicp.align(target.fine, source.fine, target.fine_tree, init_T_target_source=result.T_target_source,
-                              registration_type="GICP", max_correspondence_distance=fine, num_threads=1,
-                              max_iterations=_FINE_ITERATIONS, rotation_epsilon=stop_rad / 10,
-                              translation_epsilon=stop_len / 10)
-    transform = np.asarray(result.T_target_source)
-    moved = source.points @ transform[:3, :3].T + transform[:3, 3]
-    dist, nearest = target.nearest.query(moved, k=1)
-    inlier = dist <= fine
-    overlap = float(inlier.mean())
+    transform, moved, matched, normals = _point_to_plane(source, target, np.asarray(result.T_target_source),
+                                                         fine, _FINE_STOP_SPACING * spacing)
+    overlap = moved.shape[1] / source.points.shape[1]
     if overlap < config.pose_min_overlap:
         return None, f"overlap {overlap:.2f} < {config.pose_min_overlap}"
-    offset = np.einsum("ij,ij->i", moved[inlier] - target.points[nearest[inlier]], target.normals[nearest[inlier]])
+    offset = np.einsum("ij,ij->j", moved - matched, normals)
     residual = float(np.sqrt(np.mean(offset**2)))
     if residual > config.pose_max_residual:
         return None, f"residual {residual:.3g} > {config.pose_max_residual} {config.units}"
-    ratio = _constraint_ratio(target.points[nearest[inlier]], target.normals[nearest[inlier]], radius)
+    matched, normals = matched.T, normals.T
+    centre = matched.mean(axis=0)
+    extent = max(float(np.sqrt(np.mean(np.sum((matched - centre) ** 2, axis=1)))), spacing)
+    ratio = _constraint_ratio(matched, normals, centre, extent)
     if ratio < _MIN_CONSTRAINT_RATIO:
         return None, f"degenerate surface (constraint ratio {ratio:.1e}: the overlap does not pin every direction)"
-    return _Pair(-1, -1, transform, residual, overlap), "ok"
+    # Floored: two identical views fit exactly (residual 0), which must not outweigh every other pair.
+    weight = overlap / max(residual, _FINE_STOP_SPACING * spacing)
+    return _Pair(-1, -1, transform, residual, overlap, centre, extent, weight), "ok"
 
 
-def _weighted_incidence(n: int, edges: list[_Pair]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Source and target index, and the (E, n) incidence matrix (+w at source, -w at target) and
-    weights w of the edges: a pair counts more the more surface it shares and the better it fits."""
-    src = np.array([e.source for e in edges])
-    tgt = np.array([e.target for e in edges])
-    weight = np.array([e.overlap / e.residual for e in edges])
-    weight = weight / weight.max()
-    incidence = np.zeros((len(edges), n))
-    incidence[np.arange(len(edges)), src] = weight
-    incidence[np.arange(len(edges)), tgt] = -weight
-    return src, tgt, incidence, weight
+def _candidate_pairs(clouds: list[_Cloud | None], min_overlap: float) -> list[tuple[int, int]]:
+    """View pairs worth registering, (i, j) with i < j.
+
+    Two views are candidates when they share at least ``min_overlap`` of the smaller one's
+    coarse cells (counted for all pairs at once by one sparse product, whose cost grows with
+    how many views see each cell, not with the square of the views).  Each view keeps its
+    ``_MAX_PARTNERS`` candidates sharing the most, and a maximum spanning forest of the
+    candidates is added so that pruning never splits a group of overlapping views.
+    """
+    have = [k for k, c in enumerate(clouds) if c is not None]
+    if len(have) < 2:
+        return []
+    keys = np.concatenate([clouds[k].cells for k in have])
+    owner = np.repeat(np.arange(len(have)), [clouds[k].cells.size for k in have])
+    _, cell = np.unique(keys, return_inverse=True)
+    member = csr_matrix((np.ones(keys.size, dtype=np.int64), (owner, cell.ravel())), shape=(len(have), int(cell.max()) + 1))
+    shared = coo_matrix((member @ member.T).tocsr())
+    sizes = np.array([clouds[k].cells.size for k in have])
+    share = shared.data / np.minimum(sizes[shared.row], sizes[shared.col])
+    ok = (shared.row != shared.col) & (share >= min_overlap)
+    row, col, share = shared.row[ok], shared.col[ok], share[ok]  # both directions of every candidate
+    if row.size == 0:
+        return []
+    # Rank each view's candidates by share (ties by index) and keep the best few.
+    order = np.lexsort((col, -share, row))
+    row, col, share = row[order], col[order], share[order]
+    first = np.r_[0, np.flatnonzero(np.diff(row)) + 1]
+    rank = np.arange(row.size) - np.repeat(first, np.diff(np.r_[first, row.size]))
+    best = rank < _MAX_PARTNERS
+    # Spanning forest over the candidates, largest shares first (weights must be positive).
+    upper = row < col
+    forest = minimum_spanning_tree(coo_matrix((2.0 - share[upper], (row[upper], col[upper])), shape=(len(have),) * 2))
+    forest = forest.tocoo()
+    chosen = {(min(a, b), max(a, b)) for a, b in zip(row[best], col[best])}
+    chosen |= {(min(a, b), max(a, b)) for a, b in zip(forest.row, forest.col)}
+    return sorted((have[a], have[b]) for a, b in chosen)
 
 
-def _average_rotations(n: int, edges: list[_Pair], iterations: int = 8) -> np.ndarray:
-    """(n, 3, 3) rotations R with R_i ~ R_j R_ij for every edge, minimum-norm (Lie-algebraic averaging)."""
+class _EdgeSystem:
+    """Least squares over the views of a graph of pairwise differences: x_i - x_j = b_ij per edge.
+
+    A pair counts more (weight w) the more surface it shares and the better it fits.  Such a
+    system fixes x only up to one constant per connected group of views; of all least-squares
+    solutions ``solve`` returns the minimum-norm one (zero mean over each group; zero for a view
+    without edges).  The normal equations are a sparse graph Laplacian, factorised once with one
+    view per group pinned at zero; each group's mean is removed afterwards.
+    """
+
+    def __init__(self, n: int, edges: list[_Pair]) -> None:
+        self.source = np.array([e.source for e in edges], dtype=np.int64)
+        self.target = np.array([e.target for e in edges], dtype=np.int64)
+        weight = np.array([e.weight for e in edges])
+        self.weight = weight / weight.max()
+        rows = np.r_[np.arange(len(edges)), np.arange(len(edges))]
+        self.incidence = csr_matrix((np.r_[self.weight, -self.weight], (rows, np.r_[self.source, self.target])),
+                                    shape=(len(edges), n))
+        laplacian = (self.incidence.T @ self.incidence).tocsc()
+        self.groups, self.label = connected_components(laplacian, directed=False)
+        pinned = np.zeros(n, dtype=bool)
+        pinned[np.unique(self.label, return_index=True)[1]] = True
+        self.free = np.flatnonzero(~pinned)
+        self.factor = splu(laplacian[self.free][:, self.free].tocsc()) if self.free.size else None
+        self.size = np.bincount(self.label, minlength=self.groups)[:, None]
+
+    def solve(self, differences: np.ndarray) -> np.ndarray:
+        """(n, k) minimum-norm least-squares x for per-edge (E, k) differences b."""
+        x = np.zeros((self.label.size, differences.shape[1]))
+        if self.factor is not None:
+            x[self.free] = self.factor.solve((self.incidence.T @ (differences * self.weight[:, None]))[self.free])
+        mean = np.zeros((self.groups, differences.shape[1]))
+        np.add.at(mean, self.label, x)
+        return x - (mean / self.size)[self.label]
+
+
+def _solve_graph(n: int, edges: list[_Pair], iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Corrections (R_i, t_i) in the centred frame with C_i = C_j T_ij in least squares, zero mean per group.
+
+    Rotations first, averaged in the Lie algebra (iterated, minimum-norm); then translations,
+    exactly linear once the rotations are known: t_i - t_j = R_j t_ij.
+    """
     rotations = np.repeat(np.eye(3)[None], n, axis=0)
+    translations = np.zeros((n, 3))
     if not edges:
-        return rotations
-    src, tgt, incidence, weight = _weighted_incidence(n, edges)
+        return rotations, translations
+    system = _EdgeSystem(n, edges)
+    src, tgt = system.source, system.target
     measured = np.stack([e.transform[:3, :3] for e in edges])
     for _ in range(iterations):
         # residual e_ij = log(R_j R_ij R_i^T); left updates with d_i - d_j = e_ij cancel it to first order.
         err = Rotation.from_matrix(rotations[tgt] @ measured @ rotations[src].transpose(0, 2, 1)).as_rotvec()
-        step = np.linalg.lstsq(incidence, err * weight[:, None], rcond=None)[0]  # min-norm: zero mean per group
+        step = system.solve(err)
         rotations = Rotation.from_rotvec(step).as_matrix() @ rotations
         if np.abs(step).max() < 1e-10:
             break
-    return rotations
-
-
-def _solve_graph(n: int, edges: list[_Pair]) -> tuple[np.ndarray, np.ndarray]:
-    """Corrections (R_i, t_i) in the centred frame with C_i = C_j T_ij in least squares, zero mean per group."""
-    rotations = _average_rotations(n, edges)
-    translations = np.zeros((n, 3))
-    if edges:
-        src, tgt, incidence, weight = _weighted_incidence(n, edges)
-        # t_i - t_j = R_j t_ij, exactly linear once the rotations are known.
-        rhs = np.einsum("eij,ej->ei", rotations[tgt], np.stack([e.transform[:3, 3] for e in edges]))
-        translations = np.linalg.lstsq(incidence, rhs * weight[:, None], rcond=None)[0]
+    translations = system.solve(np.einsum("eij,ej->ei", rotations[tgt], np.stack([e.transform[:3, 3] for e in edges])))
     return rotations, translations
 
 
-def _edge_disagreement(edge: _Pair, rotations: np.ndarray, translations: np.ndarray, radius: float) -> float:
-    """How far (config units, at ``radius`` from the centre) the solved corrections miss the edge's measurement."""
-    i, j = edge.source, edge.target
-    rot = Rotation.from_matrix(rotations[j] @ edge.transform[:3, :3] @ rotations[i].T).magnitude()
-    shift = np.linalg.norm(rotations[j] @ edge.transform[:3, 3] + translations[j] - translations[i])
-    return float(rot * radius + shift)
+def _disagreements(edges: list[_Pair], rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """How far (config units) the solved corrections miss each edge's measurement on its matched surface.
+
+    The miss D = C_j T_ij C_i^-1 (identity when they agree) moves the surface's centroid c by
+    |D c - c| and turns it by angle(D), which moves points ``extent`` away by about angle x extent.
+    """
+    if not edges:
+        return np.zeros(0)
+    src = np.array([e.source for e in edges])
+    tgt = np.array([e.target for e in edges])
+    measured = np.stack([e.transform for e in edges])
+    centre = np.stack([e.centre for e in edges])
+    rot_i_inv, rot_j = rotations[src].transpose(0, 2, 1), rotations[tgt]
+    miss = rot_j @ measured[:, :3, :3] @ rot_i_inv
+    # D c = R_j (R_ij (R_i^T (c - t_i)) + t_ij) + t_j
+    back = np.einsum("eij,ej->ei", rot_i_inv, centre - translations[src])
+    moved = np.einsum("eij,ej->ei", rot_j, np.einsum("eij,ej->ei", measured[:, :3, :3], back) + measured[:, :3, 3])
+    moved += translations[tgt]
+    return _rotation_angle(miss) * np.array([e.extent for e in edges]) + np.linalg.norm(moved - centre, axis=1)
 
 
-def _correction_size(rotation: np.ndarray, translation: np.ndarray, centre_offset: np.ndarray) -> tuple[float, float]:
-    """(degrees, how far a camera at ``centre_offset`` from the scene centre moves) of one correction."""
-    angle = float(np.rad2deg(Rotation.from_matrix(rotation).magnitude()))
-    moved = rotation @ centre_offset + translation - centre_offset
-    return angle, float(np.linalg.norm(moved))
+def _correction_sizes(rotations: np.ndarray, translations: np.ndarray, offsets: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Per view: degrees of its correction, and how far the correction moves a point of the view
+    at ``offsets`` from the scene centre (its camera, or its surface)."""
+    moved = np.einsum("kij,kj->ki", rotations, offsets) + translations - offsets
+    return np.rad2deg(_rotation_angle(rotations)), np.linalg.norm(moved, axis=1)
+
+
+def _groups(n: int, edges: list[_Pair]) -> np.ndarray:
+    """Connected group label of every view in the graph of ``edges`` (a view without edges is its own group)."""
+    src = [e.source for e in edges]
+    tgt = [e.target for e in edges]
+    return connected_components(coo_matrix((np.ones(len(edges)), (src, tgt)), shape=(n, n)), directed=False)[1]
 
 
 def refine_poses(
@@ -253,39 +499,36 @@ def refine_poses(
                                            correction=identity, message="the bundle has no depth images to register")
                         for v in bundle.views]
 
-    raw = [_view_points(v, config.max_depth / scale) * scale for v in bundle.views]
-    # Median centre and distance: a view declared far away (another place) must not move them.
-    all_points = np.concatenate([p for p in raw if p.size] or [np.zeros((1, 3))])
-    centre = np.median(all_points, axis=0)
-    radius = max(float(np.median(np.linalg.norm(all_points - centre, axis=1))), config.pose_point_spacing)
-    coarse = _coarse_match_distance(config, radius)
-    clouds = [_make_cloud(p - centre, config, coarse) if p.shape[0] else None for p in raw]
+    sampled = [_view_grid(v, config.max_depth / scale) for v in bundle.views]
+    # Median centre (of every other sample): a view declared far away (another place) must not move it.
+    valid = [g[:, ::2, ::2].reshape(3, -1) for g, *_ in sampled]
+    valid = [p[:, np.isfinite(p[0])] * scale for p in valid]
+    centre = np.median(np.concatenate([p for p in valid if p.size] or [np.zeros((3, 1))], axis=1), axis=1)
+    clouds = [_make_cloud(v, s, centre, scale, config) for v, s in zip(bundle.views, sampled)]
+    camera_offset = np.stack([v.camera_center * scale for v in bundle.views]) - centre
+    reaches = [c.reach for c in clouds if c is not None]
+    cell = _coarse_match_distance(config, float(np.median(reaches)) if reaches else 0.0)
+    for c in clouds:
+        if c is not None:
+            c.cells = _cell_keys(c.points.T, cell)
 
     why: dict[int, str] = {}
     edges: list[_Pair] = []
-    for i in range(n):
-        for j in range(i + 1, n):
-            a, b = clouds[i], clouds[j]
-            if a is None or b is None:
-                continue
-            shared = np.intersect1d(a.cells, b.cells, assume_unique=True).size
-            if shared < config.pose_min_overlap * min(a.cells.size, b.cells.size):
-                continue
-            pair, reason = _register(a, b, config, radius)
-            if pair is None:
-                why.setdefault(i, f"registration with {bundle.views[j].name}: {reason}")
-                why.setdefault(j, f"registration with {bundle.views[i].name}: {reason}")
-                continue
-            edges.append(dataclasses.replace(pair, source=i, target=j))
+    for i, j in _candidate_pairs(clouds, config.pose_min_overlap):
+        pair, reason = _register(clouds[i], clouds[j], config)
+        if pair is None:
+            why.setdefault(i, f"registration with {bundle.views[j].name}: {reason}")
+            why.setdefault(j, f"registration with {bundle.views[i].name}: {reason}")
+            continue
+        edges.append(dataclasses.replace(pair, source=i, target=j))
 
     # Solve; drop disagreeing edges and out-of-bound views until everything left is consistent.
     status = ["corrected"] * n
-    camera_offset = np.stack([v.camera_center * scale for v in bundle.views]) - centre
     agree = max(config.pose_max_residual, config.pose_point_spacing / 2.0)
     while True:
         rotations, translations = _solve_graph(n, edges)
         if edges:
-            miss = np.array([_edge_disagreement(e, rotations, translations, radius) for e in edges])
+            miss = _disagreements(edges, rotations, translations)
             worst = int(np.argmax(miss))
             if miss[worst] > agree and len(edges) > 1:
                 e = edges.pop(worst)
@@ -293,14 +536,14 @@ def refine_poses(
                     why.setdefault(k, f"its registration with {bundle.views[e.target + e.source - k].name} "
                                       f"disagrees with the others by {miss[worst] / scale:.3g} {bundle.units}")
                 continue
-        sizes = [_correction_size(rotations[k], translations[k], camera_offset[k]) for k in range(n)]
+        degrees, shifts = _correction_sizes(rotations, translations, camera_offset)
         over = [k for k in range(n) if status[k] == "corrected"
-                and (sizes[k][0] > config.pose_max_rotation_deg or sizes[k][1] > config.pose_max_translation)]
+                and (degrees[k] > config.pose_max_rotation_deg or shifts[k] > config.pose_max_translation)]
         if not over:
             break
-        worst = max(over, key=lambda k: sizes[k][0] / config.pose_max_rotation_deg + sizes[k][1] / config.pose_max_translation)
+        worst = max(over, key=lambda k: degrees[k] / config.pose_max_rotation_deg + shifts[k] / config.pose_max_translation)
         status[worst] = "correction_too_large"
-        why[worst] = (f"the correction ({sizes[worst][0]:.2f} deg, {sizes[worst][1] / scale:.3g} {bundle.units}) "
+        why[worst] = (f"the correction ({degrees[worst]:.2f} deg, {shifts[worst] / scale:.3g} {bundle.units}) "
                       f"exceeds the bound ({config.pose_max_rotation_deg} deg, "
                       f"{config.pose_max_translation / scale:.3g} {bundle.units}); pose kept")
         edges = [e for e in edges if worst not in (e.source, e.target)]
@@ -313,24 +556,37 @@ def refine_poses(
             status[k] = "not_registered"
             why.setdefault(k, "no other view overlaps it enough")
     # Corrections within the registration's own accuracy are noise, not information: when no
-    # view would move by more, the declared poses already agree and are left exactly as they are.
-    refined = [k for k in range(n) if status[k] == "corrected"]
-    if refined and all(sizes[k][0] < config.pose_min_rotation_deg
-                       and sizes[k][1] < config.pose_min_translation for k in refined):
-        for k in refined:
-            status[k] = "unchanged"
-            why[k] = (f"the declared pose agrees with its neighbours to within {sizes[k][0]:.3f} deg and "
-                      f"{sizes[k][1] / scale:.3g} {bundle.units} (under pose_min_rotation_deg / pose_min_translation); kept")
+    # view of a connected group would move by more, the group's declared poses already agree
+    # and are left exactly as they are (groups are separate places and are judged apart).
+    # Moves are judged where registration measures them, on the view's surface: at the camera,
+    # metres from the scene centre, the lever arm turns 0.04 deg of noise into a centimetre.
+    surface = np.stack([c.points.mean(axis=1) if c is not None else camera_offset[k] for k, c in enumerate(clouds)])
+    surface_shifts = _correction_sizes(rotations, translations, surface)[1]
+    group = _groups(n, edges)
+    for g in np.unique(group[in_graph]):
+        members = [k for k in np.flatnonzero(group == g) if status[k] == "corrected"]
+        if members and all(degrees[k] < config.pose_min_rotation_deg
+                           and surface_shifts[k] < config.pose_min_translation for k in members):
+            for k in members:
+                status[k] = "unchanged"
+                why[k] = (f"the declared pose agrees with its neighbours to within {degrees[k]:.3f} deg and "
+                          f"{surface_shifts[k] / scale:.3g} {bundle.units} on its surface (under "
+                          "pose_min_rotation_deg / pose_min_translation); kept")
+    incident: list[list[_Pair]] = [[] for _ in range(n)]
+    worst_miss = np.zeros(n)
+    for e, m in zip(edges, _disagreements(edges, rotations, translations)):
+        for k in (e.source, e.target):
+            incident[k].append(e)
+            worst_miss[k] = max(worst_miss[k], m)
     reports, views = [], []
     for k, view in enumerate(bundle.views):
-        mine = [e for e in edges if k in (e.source, e.target)]
+        mine, miss = incident[k], worst_miss[k]
         correction = np.eye(4)
         if status[k] == "corrected":
             r, t = rotations[k], translations[k]
             correction[:3, :3] = r
             correction[:3, 3] = (t + centre - r @ centre) / scale  # centred config frame -> bundle world frame
-        angle, shift = sizes[k] if status[k] == "corrected" else (0.0, 0.0)
-        miss = max((_edge_disagreement(e, rotations, translations, radius) for e in mine), default=0.0)
+        angle, shift = (float(degrees[k]), float(shifts[k])) if status[k] == "corrected" else (0.0, 0.0)
         consistent = miss <= agree / 2.0 if status[k] in ("corrected", "unchanged") else None
         message = why.get(k) if status[k] != "corrected" else None
         if consistent is False:
