@@ -1,5 +1,8 @@
 """Stage 1 (optional): refine the declared camera poses from the scene itself.
 
+(Over 500 lines for now: one algorithm - clouds, pairwise registration, pose graph, bounds - whose
+steps share private types; splitting registration from the pose graph is the next step.)
+
 Odometry and SLAM poses are off by a fraction of a degree to a few degrees; at 7-10 m
 range, 2 degrees moves points by 24-35 cm and whole views stop overlapping in the
 shadow grid.  Every view sees the ground and the rocks, and neighbouring views share
