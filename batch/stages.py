@@ -26,7 +26,7 @@ from shadowcorr.config import ShadowCorrConfig
 from shadowcorr.config import NETWORK_METHODS
 from shadowcorr.pipeline import assign, baseline_embeddings, embed, model_info, prepare
 from shadowcorr.result import ModelInfo
-from shadowcorr.voxel_scene import VoxelScene
+from shadowcorr.stages import VoxelScene
 
 if TYPE_CHECKING:
     from clients.dataset import SceneSource

@@ -1,4 +1,4 @@
-"""Benchmark: shadowcorr.clustering.mean_shift vs sklearn.cluster.MeanShift.
+"""Benchmark: shadowcorr.stages.mean_shift vs sklearn.cluster.MeanShift.
 
 Data: L2-normalised 32-D embeddings in 20 well-separated blobs (Gaussian spread 0.06
 per axis around random unit directions) plus 5 % uniform noise directions - the
@@ -34,7 +34,7 @@ from sklearn.metrics import adjusted_rand_score
 from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
-from shadowcorr.clustering import mean_shift  # noqa: E402
+from shadowcorr.stages import mean_shift  # noqa: E402
 
 
 def make_embeddings(n: int, dim: int = 32, blobs: int = 20, noise: float = 0.05, seed: int = 0) -> np.ndarray:

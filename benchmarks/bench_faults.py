@@ -36,7 +36,6 @@ import statistics
 import sys
 import threading
 import time
-import zipfile
 from pathlib import Path
 from typing import Any, Callable
 
@@ -46,7 +45,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from service.testing import ServerProcess  # noqa: E402
+from tests.harness import ServerProcess, add_zeros_member, zipped_bundle  # noqa: E402
 
 MiB = 1024 * 1024
 SAMPLE_DIR = ROOT / "examples" / "ue_sample"
@@ -54,20 +53,9 @@ SAMPLE_DIR = ROOT / "examples" / "ue_sample"
 
 # --------------------------------------------------------------------------- helpers
 def tiny_scene() -> tuple[bytes, dict, dict[str, bytes]]:
-    from shadowcorr.io import bundle_to_parts
-
     from service.synthetic import synthetic_bundle
 
-    manifest, files = bundle_to_parts(synthetic_bundle(n_rocks=3, n_views=3))
-    return zip_files({"manifest.json": json.dumps(manifest).encode(), **files}), manifest, files
-
-
-def zip_files(files: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
-        for name, data in files.items():
-            zf.writestr(name, data)
-    return buf.getvalue()
+    return zipped_bundle(synthetic_bundle(n_rocks=3, n_views=3))
 
 
 def read_status(sock: socket.socket) -> tuple[int | None, str]:
@@ -201,8 +189,7 @@ def confetti_scene(n_blobs: int = 1900) -> bytes:
         mask[r * 10:r * 10 + side, c * 10:c * 10 + side] = i + 1
     depth = np.where(mask > 0, 500.0, view.depth).astype(np.float32)
     bundle.views[0] = dataclasses.replace(view, mask=mask, depth=depth)
-    manifest, files = bundle_to_parts(bundle)
-    return zip_files({"manifest.json": json.dumps(manifest).encode(), **files})
+    return zipped_bundle(bundle)[0]
 
 
 def bench_costly(server: ServerProcess, other_limit_server: ServerProcess | None) -> None:
@@ -250,13 +237,7 @@ def bench_memory(server: ServerProcess, n: int, size: int) -> None:
 def bench_archive(server: ServerProcess, tiny: tuple[bytes, dict, dict[str, bytes]], unnamed_mib: int) -> None:
     print(f"\n[5] a valid bundle zipped with a {unnamed_mib} MiB member the manifest does not name")
     zipped, _, _ = tiny
-    buf = io.BytesIO(zipped)
-    with zipfile.ZipFile(buf, "a", zipfile.ZIP_DEFLATED) as zf:
-        with zf.open("extra/padding.bin", "w", force_zip64=True) as member:
-            zero = bytes(MiB)
-            for _ in range(unnamed_mib):
-                member.write(zero)
-    body = buf.getvalue()
+    body = add_zeros_member(zipped, unnamed_mib, "extra/padding.bin")
     workers = server.worker_processes()
     base = sum(p.memory_info().rss for p in workers)
     with RssSampler(lambda: workers) as sampler:

@@ -28,7 +28,8 @@ import torch
 from shadowcorr import ShadowCorrConfig, correspond, load_model
 from shadowcorr.bundle import SceneBundle, unit_scale
 from shadowcorr.convert import load_ue_scene
-from shadowcorr.pose_refinement import pose_errors, refine_poses
+from shadowcorr.evaluation import pose_errors
+from shadowcorr.stages import refine_poses
 from shadowcorr.synth import SynthConfig, generate_scene
 from shadowcorr.synth.noise import perturbed_pose
 

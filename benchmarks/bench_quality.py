@@ -1,5 +1,8 @@
 """Quality of every correspondence method across camera rigs, sensor noise and segmenter errors.
 
+(Over 500 lines on purpose: one runnable script - its condition catalogue, parallel runner and
+report are one benchmark definition that `tests/test_bench_quality.py` runs as a whole.)
+
     python benchmarks/bench_quality.py --quick                      # minutes: a subset, 3 scenes per cell
     python benchmarks/bench_quality.py                              # the full table, 30 scenes per cell
     python benchmarks/bench_quality.py --methods shadowcorr,projection --conditions 'syn:4v*,real:*'
@@ -403,7 +406,7 @@ SUMMARY_KEYS = frozenset({m[0] for m in METRICS} | {"time_ms", "wall_ms"})
 
 def summarize_cells(records: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, Any]]]:
     """``{condition: {method: {metric: {mean, std, n}, "errors": k, "flag_precision", "flag_recall"}}}``."""
-    from shadowcorr.metrics import summarize
+    from shadowcorr.evaluation import summarize
 
     cells: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for r in records:

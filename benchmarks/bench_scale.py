@@ -96,7 +96,7 @@ def compare_embedding_scopes(copies: list[int], cameras: list[int], data: str) -
 
     from shadowcorr import ShadowCorrConfig, prepare
     from shadowcorr.convert import load_ue_scene
-    from shadowcorr.segment_embedding import cooccurrence, train_segment_embeddings
+    from shadowcorr.stages import cooccurrence, train_segment_embeddings
 
     scene = prepare(load_ue_scene(data, 2001, cameras))
     cooc = cooccurrence(scene.member_voxel, scene.member_segment, scene.num_voxels, scene.num_segments)

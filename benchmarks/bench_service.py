@@ -36,7 +36,7 @@ from prometheus_client.parser import text_string_to_metric_families
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from service.testing import ServerProcess  # noqa: E402
+from tests.harness import ServerProcess  # noqa: E402
 
 SAMPLE_DIR = next(
     (d for d in (ROOT / "examples" / "ue_sample", ROOT.parent / "shared" / "data" / "ue_sample") if d.is_dir()),

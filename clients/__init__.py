@@ -30,8 +30,8 @@ from .errors import (
 from .records import UploadRecord, read_records
 from .result import ResultView
 from .retry import NO_RETRY, RetryPolicy, parse_retry_after
-from .upload import BundleUpload, as_upload
-from .uploader import upload_scene, upload_scenes
+from .request_body import BundleUpload, as_upload
+from .bulk_upload import upload_scene, upload_scenes
 
 __all__ = [
     "AsyncShadowCorrClient",

@@ -16,8 +16,8 @@ from .dataset import LIBRARY_INSTALL, BagOptions, SceneSource, discover_scenes, 
 from .errors import BundleInputError, ConnectionFailed, ResponseError, ShadowCorrError
 from .records import RecordWriter, UploadRecord, format_metrics, format_summary, read_records, summarize_records
 from .retry import RetryPolicy
-from .upload import BundleUpload
-from .uploader import upload_scenes
+from .request_body import BundleUpload
+from .bulk_upload import upload_scenes
 
 __all__ = ["main", "build_parser"]
 

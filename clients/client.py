@@ -25,7 +25,7 @@ import httpx
 
 from .errors import ClientError, ConnectionFailed, InvalidResponse, ResponseError, ServerError
 from .retry import NO_RETRY, RetryPolicy, parse_retry_after
-from .upload import BundleSource, BundleUpload, as_upload
+from .request_body import BundleSource, BundleUpload, as_upload
 
 if TYPE_CHECKING:  # the Result model is imported when the first result is parsed, not with the client
     from shadowcorr.result import Result

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal, Sequence
 
 from .errors import BundleInputError
-from .upload import MANIFEST_NAME, BundleUpload
+from .request_body import MANIFEST_NAME, BundleUpload
 
 if TYPE_CHECKING:
     from shadowcorr.bundle import SceneBundle

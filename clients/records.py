@@ -140,7 +140,7 @@ def percentile(values: Sequence[float], q: float) -> float:
 
 
 def _mean_std(values: Iterable[Any]) -> tuple[float, float, int]:
-    # Population std (ddof=0) with NaN skipped: the same definition as shadowcorr.metrics.summarize.
+    # Population std (ddof=0) with NaN skipped: the same definition as shadowcorr.evaluation.summarize.
     vals = [float(v) for v in values if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
     if not vals:
         return math.nan, math.nan, 0

@@ -30,7 +30,7 @@ from shadowcorr.io import load_bundle, load_bundle_from_parts
 from shadowcorr.pipeline import assign, baseline_embeddings, prepare
 from shadowcorr.result import ModelInfo
 from shadowcorr.errors import DepthRangeError, SceneLimitError
-from shadowcorr.voxel_scene import VoxelScene
+from shadowcorr.stages import VoxelScene
 
 from .errors import JobError
 from .limits import RequestLimits, Upload, check_instances

@@ -31,7 +31,7 @@ from shadowcorr.config import METHODS, NETWORK_METHODS, REQUEST_OPTIONS, ShadowC
 from shadowcorr.nn import Model, load_model
 from shadowcorr.pipeline import check_compatible, embed, model_info
 from shadowcorr.result import ModelInfo
-from shadowcorr.voxel_scene import VoxelScene
+from shadowcorr.stages import VoxelScene
 
 from . import jobs
 from .batcher import DynamicBatcher

@@ -9,7 +9,9 @@ The library is a pipeline of stages with plain data between them::
 The default method ``fused`` reads both the cross-view surface evidence and the network's
 volumetric evidence; ``ShadowCorrConfig.method`` selects another.
 
-``correspond(bundle)`` runs them all.  See ``docs/CONTRACTS.md`` and the README.
+``correspond(bundle)`` runs them all.  The stages themselves are in :mod:`shadowcorr.stages`,
+numbered in the order they run, and :mod:`shadowcorr.pipeline` composes them; see
+``docs/ARCHITECTURE.md``, ``docs/CONTRACTS.md`` and the README.
 
 Public names are imported lazily (PEP 562), so that light users such as the HTTP
 client can read ``shadowcorr.result`` without loading torch.
@@ -23,7 +25,7 @@ from ._lazy import lazy_exports
 from ._version import __version__
 
 _EXPORTS = {
-    "assign": "assignment",
+    "assign": "pipeline",
     "BundleError": "errors",
     "Problem": "errors",
     "SceneLimitError": "errors",
@@ -46,12 +48,12 @@ _EXPORTS = {
     "correspond": "pipeline",
     "embed": "pipeline",
     "prepare": "pipeline",
-    "refine_poses": "pose_refinement",
+    "refine_poses": "stages",
     "ObjectSummary": "result",
     "Result": "result",
     "SegmentLabel": "result",
     "ViewPoseCorrection": "result",
-    "VoxelScene": "voxel_scene",
+    "VoxelScene": "stages",
 }
 
 __all__ = ["__version__", *sorted(_EXPORTS)]
@@ -59,13 +61,11 @@ __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
-    from .assignment import assign
     from .bundle import Manifest, PointSegments, SceneBundle, View
     from .config import REQUEST_OPTIONS, ShadowCorrConfig
     from .errors import BundleError, DepthRangeError, Problem, SceneLimitError
     from .io import BundleLimits, load_bundle, load_bundle_from_parts, write_bundle, write_bundle_archive
     from .nn import Model, ModelCard, load_model, save_model
-    from .pipeline import correspond, embed, prepare
-    from .pose_refinement import refine_poses
+    from .pipeline import assign, correspond, embed, prepare
     from .result import ObjectSummary, Result, SegmentLabel, ViewPoseCorrection
-    from .voxel_scene import VoxelScene
+    from .stages import VoxelScene, refine_poses

@@ -235,7 +235,7 @@ EVAL_COLUMNS = {"average_purity": "average purity", "rock_purity": "rock purity"
 def cmd_eval(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .metrics import summarize
+    from .evaluation import summarize
     from .pipeline import correspond
 
     model, config = _model(args), config_from_args(args)

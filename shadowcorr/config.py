@@ -30,7 +30,7 @@ class ShadowCorrConfig(BaseModel):
 
     units: Literal["m", "cm", "mm"] = "cm"
 
-    # step 0: pose refinement (shadowcorr.pose_refinement)
+    # step 0: pose refinement (shadowcorr.stages, stage 01)
     refine_poses: bool = Field(True, description="register the views' full depth to each other and correct their poses first")
     pose_point_spacing: float = Field(12.0, gt=0, description="registration point cloud: one point per cell of this size (units)")
     pose_max_rotation_deg: float = Field(5.0, gt=0, le=30, description="larger corrections are refused (the pose is kept)")
@@ -111,7 +111,7 @@ class ShadowCorrConfig(BaseModel):
     projection_link_share: float = Field(0.5, gt=0, le=1, description="'projection': share of the visible points "
                                          "that must land on the other segment")
 
-    # resolving the evidence (method 'fused', see shadowcorr.grouping)
+    # resolving the evidence (method 'fused', see shadowcorr.stages, stage 09 grouping)
     fusion_surface_prior: float = Field(20.0, gt=0, description="landing points that make surface evidence half-sure")
     fusion_neutral_share: float = Field(0.2, gt=0, lt=1, description="share of a group's landings on another "
                                         "group that is neither for nor against joining them")

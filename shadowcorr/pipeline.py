@@ -1,28 +1,38 @@
-"""The stage API: ``prepare`` -> ``embed`` -> ``assign``, and ``correspond`` composing them.
+"""The pipeline, composed: ``prepare`` -> ``embed`` -> ``assign``, and ``correspond`` running all three.
 
-``prepare`` and ``assign`` are per scene and CPU-bound (the HTTP service runs them in
-worker processes); ``embed`` takes a list of prepared scenes and runs the network
-once over all of them (the service batches concurrent requests through it).
+Each step below calls the stages of :mod:`shadowcorr.stages` in their order (the numbers
+are the stage modules').  ``prepare`` and ``assign`` are per scene and CPU-bound (the HTTP
+service runs them in worker processes); ``embed`` takes a list of prepared scenes and runs
+the network once over all of them (the service batches concurrent requests through it).
 """
 
 from __future__ import annotations
 
 import time
-from typing import Sequence
 
 import numpy as np
 
-from .assignment import assign
 from .bundle import SceneBundle, unit_scale
 from .config import NETWORK_METHODS, SURFACE_METHODS, ShadowCorrConfig
 from .errors import SceneLimitError
-from .nn import Model, load_model, run_batched
-from .pose_refinement import pose_warnings, refine_poses
+from .nn import Model, load_model
 from .result import ModelInfo, Result
-from .segments import check_valid_depth, extract_segments
-from .shadows import ShadowVoxels, cast_shadows, raw_shells, segment_shells
-from .surface_evidence import surface_evidence
-from .voxel_scene import VoxelScene, build_voxel_scene
+from .stages._01_poses import pose_warnings, refine_poses
+from .stages._02_segments import check_valid_depth, extract_segments
+from .stages._03_surface_evidence import surface_evidence
+from .stages._04_shells import raw_shells, segment_shells
+from .stages._05_shadows import ShadowVoxels, cast_shadows
+from .stages._06_voxel_scene import VoxelScene, build_voxel_scene
+from .stages._07_network import baseline_embeddings, check_compatible, embed, model_info
+from .stages._09_clustering import cluster_voxels
+from .stages._09_grouping import group_by_evidence
+from .stages._10_assignment import evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote
+
+__all__ = ["assign", "baseline_embeddings", "check_compatible", "correspond", "embed", "model_info", "prepare"]
+
+
+def _ms_since(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
 
 
 def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> VoxelScene:
@@ -35,11 +45,11 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     config = config or ShadowCorrConfig()
     timings: dict[str, float] = {}
     poses = None
-    if config.refine_poses:
+    if config.refine_poses:  # 01
         t0 = time.perf_counter()
         bundle, poses = refine_poses(bundle, config)
-        timings["poses"] = (time.perf_counter() - t0) * 1e3
-    t0 = time.perf_counter()
+        timings["poses"] = _ms_since(t0)
+    t0 = time.perf_counter()  # 02
     segments = extract_segments(bundle, config)
     if segments.num_segments == 0:
         raise ValueError(
@@ -49,23 +59,23 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     if segments.num_segments > config.max_segments:
         raise SceneLimitError("max_segments", segments.num_segments, config.max_segments)
     depth_warnings = check_valid_depth(segments, bundle.units, config)  # DepthRangeError when nearly all are empty
-    timings["segments"] = (time.perf_counter() - t0) * 1e3
+    timings["segments"] = _ms_since(t0)
     surface = None
-    if config.method in SURFACE_METHODS:
+    if config.method in SURFACE_METHODS:  # 03
         t0 = time.perf_counter()
         surface = surface_evidence(bundle, segments, config)
-        timings["surface_evidence"] = (time.perf_counter() - t0) * 1e3
+        timings["surface_evidence"] = _ms_since(t0)
     segments.pixel_segment = None  # the label images serve the surface evidence only: free them now
     if config.method == "projection":
         shells, shadows = raw_shells(segments), ShadowVoxels.empty()
     else:
-        t0 = time.perf_counter()
+        t0 = time.perf_counter()  # 04
         shells = segment_shells(segments, config)
-        timings["shells"] = (time.perf_counter() - t0) * 1e3
-        t0 = time.perf_counter()
+        timings["shells"] = _ms_since(t0)
+        t0 = time.perf_counter()  # 05
         shadows = cast_shadows(segments, shells, config)
-        timings["shadows"] = (time.perf_counter() - t0) * 1e3
-    scene = build_voxel_scene(
+        timings["shadows"] = _ms_since(t0)
+    scene = build_voxel_scene(  # 06
         bundle.name, bundle.units, unit_scale(bundle.units, config.units), segments, shells, shadows, config, timings
     )
     scene.surface = surface
@@ -75,32 +85,62 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     return scene
 
 
-def check_compatible(model: Model, config: ShadowCorrConfig) -> None:
-    """The scene must be voxelised as the model was trained (same voxel size and units)."""
-    card = model.card
-    if card.units != config.units or abs(card.voxel_size - config.voxel_size) > 1e-9:
-        raise ValueError(
-            f"model {card.name!r} expects voxel_size {card.voxel_size} {card.units}, "
-            f"the configuration has {config.voxel_size} {config.units}"
-        )
-    if len(card.features) != config.feature_dim:
-        raise ValueError(f"model {card.name!r} takes {len(card.features)} features, the configuration makes {config.feature_dim}")
+# embed (07) is the stage function itself: stages._07_network.embed
 
 
-def embed(model: Model, scenes: Sequence[VoxelScene]) -> list[np.ndarray]:
-    """Network embeddings of several prepared scenes in one forward pass (ragged batch)."""
-    for scene in scenes:
-        check_compatible(model, scene.config)
-    return run_batched(model, [s.features for s in scenes], [s.voxel_index for s in scenes])
+def assign(
+    scene: VoxelScene,
+    embeddings: np.ndarray,
+    config: ShadowCorrConfig | None = None,
+    *,
+    model: ModelInfo | None = None,
+    metrics: bool = False,
+) -> Result:
+    """Group the segments or cluster the voxel embeddings, and label every segment.
 
+    ``config`` defaults to the configuration the scene was prepared with; only its
+    grouping and clustering fields (``method``, ``bandwidth``, ``baseline_bandwidth``,
+    ``min_cluster_size``, ``orphan_max_gap``, ``fusion_*``) matter here.  Metrics are added
+    when ``metrics`` is true and the scene carries ground truth.
+    """
+    config = config or scene.config
+    timings = dict(scene.timings_ms)
+    t0 = time.perf_counter()
+    if config.method in SURFACE_METHODS:  # 08-09: evidence between segments -> groups -> 10
+        seg_label, support = group_by_evidence(scene, embeddings, config)
+        voxel_label, how = evidence_labels(scene, seg_label)
+        timings["grouping"] = _ms_since(t0)
+        t0 = time.perf_counter()
+    else:  # 09: MeanShift on the voxel embeddings -> 10: a vote per segment
+        bandwidth = config.bandwidth if config.method == "shadowcorr" else config.baseline_bandwidth
+        voxel_label = cluster_voxels(np.asarray(embeddings), bandwidth, config.min_cluster_size)
+        timings["clustering"] = _ms_since(t0)
+        t0 = time.perf_counter()
+        seg_label, support, how = vote(scene, voxel_label, config.orphan_max_gap)
+    seg_object, voxel_object, num_objects = number_objects(seg_label, voxel_label)  # 10
+    segments = segment_labels(scene, seg_object, support, how)
+    objects = object_summaries(scene, seg_object, voxel_object, num_objects)
+    timings["assign"] = _ms_since(t0)
 
-def baseline_embeddings(scene: VoxelScene) -> np.ndarray:
-    """The paper's MeanShift baseline clusters normalised confidence and position, no network."""
-    return np.ascontiguousarray(scene.features[:, :4])
+    scores = None
+    if metrics and scene.segment_truth is not None:
+        from .evaluation import score_scene  # evaluation code is loaded only when asked for
 
-
-def model_info(model: Model) -> ModelInfo:
-    return ModelInfo(name=model.name, version=model.version, sha256=model.sha256)
+        scores = score_scene(scene, seg_object, voxel_object)
+    timings["total"] = sum(v for k, v in timings.items() if k != "total")
+    return Result(
+        scene=scene.name,
+        units=scene.units,
+        method=config.method,
+        segments=segments,
+        objects=objects,
+        model=model if config.method in NETWORK_METHODS else None,
+        timings_ms={k: round(v, 3) for k, v in timings.items()},
+        warnings=list(scene.warnings) + orphan_warnings(scene, how),
+        metrics=scores,
+        poses=scene.poses,
+        config=config.model_dump(mode="json"),
+    )
 
 
 def correspond(
@@ -112,9 +152,9 @@ def correspond(
 ) -> Result:
     """Label every segment of one scene: ``assign(prepare(bundle), embed(model, [scene])[0])``.
 
-    ``model`` defaults to the packaged default model.  With ``config.method ==
-    'meanshift'`` the paper's baseline runs instead and no model is used.  Metrics are
-    added when ``metrics`` is true and the bundle carries ground truth.
+    ``model`` defaults to the packaged default model.  With ``config.method`` ``meanshift``
+    or ``projection`` no network runs and no model is loaded.  Metrics are added when
+    ``metrics`` is true and the bundle carries ground truth.
     """
     config = config or ShadowCorrConfig()
     scene = prepare(bundle, config)
@@ -123,5 +163,5 @@ def correspond(
     model = model or load_model()
     t0 = time.perf_counter()
     (embeddings,) = embed(model, [scene])
-    scene.timings_ms["network"] = (time.perf_counter() - t0) * 1e3
+    scene.timings_ms["network"] = _ms_since(t0)
     return assign(scene, embeddings, config, model=model_info(model), metrics=metrics)

@@ -22,7 +22,7 @@ class SegmentLabel(BaseModel):
     object: int = Field(description="object label; segments with the same label are the same physical object")
     support: float = Field(description="how sure the label is (0-1): for 'shadowcorr' and 'meanshift' the share of "
                            "the segment's voxel votes that went to its object; for 'projection' and 'fused' the "
-                           "calibrated confidence of the evidence (see shadowcorr.grouping)")
+                           "calibrated confidence of the evidence (see shadowcorr.stages, stage 09 grouping)")
     assignment: Assignment = Field(
         "vote",
         description="how the label was found: 'vote' (majority of its kept voxels); 'unfiltered_voxels' "

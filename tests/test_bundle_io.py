@@ -29,6 +29,8 @@ from shadowcorr.io import (
 )
 from shadowcorr.io import images
 
+from .harness import zip_files
+
 W, H = 32, 24
 
 
@@ -89,14 +91,6 @@ def expect_error(fn, *needles: str) -> BundleError:
     return err
 
 
-def zip_bytes(files: dict[str, bytes], compress=zipfile.ZIP_DEFLATED) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=compress) as zf:
-        for name, data in files.items():
-            zf.writestr(name, data)
-    return buf.getvalue()
-
-
 def tar_bytes(members: list[tarfile.TarInfo | tuple[str, bytes]], mode: str = "w") -> bytes:
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode=mode) as tf:
@@ -144,7 +138,7 @@ def test_roundtrip_archives(tmp_path: Path, suffix: str) -> None:
 
 def test_archive_with_single_top_level_folder() -> None:
     m, f = parts()
-    data = zip_bytes({f"scene/{k}": v for k, v in with_manifest(m, f).items()} | {"__MACOSX/._x": b"junk"})
+    data = zip_files({f"scene/{k}": v for k, v in with_manifest(m, f).items()} | {"__MACOSX/._x": b"junk"})
     assert_same(make_bundle(), load_bundle(data))
 
 
@@ -227,7 +221,7 @@ def test_point_segments_roundtrip(tmp_path: Path) -> None:
 def test_missing_manifest(tmp_path: Path) -> None:
     (tmp_path / "empty").mkdir()
     expect_error(lambda: load_bundle(tmp_path / "empty"), "manifest", "no manifest.json")
-    expect_error(lambda: load_bundle(zip_bytes({"a/x.png": b"1"})), "no manifest.json")
+    expect_error(lambda: load_bundle(zip_files({"a/x.png": b"1"})), "no manifest.json")
     expect_error(lambda: load_bundle(tmp_path / "nothing-here"), "source")
 
 
@@ -297,7 +291,7 @@ def test_tar_member_traversal_and_zip_absolute_member() -> None:
     m, f = parts()
     members = [(k, v) for k, v in with_manifest(m, f).items()] + [("../../etc/x", b"1")]
     expect_error(lambda: load_bundle(tar_bytes(members, "w:gz")), "archive['../../etc/x']", "leaves the bundle")
-    expect_error(lambda: load_bundle(zip_bytes({**with_manifest(m, f), "/abs.txt": b"1"})), "absolute path")
+    expect_error(lambda: load_bundle(zip_files({**with_manifest(m, f), "/abs.txt": b"1"})), "absolute path")
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         for k, v in with_manifest(m, f).items():
@@ -322,12 +316,12 @@ def test_zip_bomb_ratio_and_size_limits() -> None:
     m, f = parts()
     limits = BundleLimits(ratio_check_min_bytes=1024 * 1024)
     # a member the manifest does not name is never decompressed: harmless, only a warning
-    ignored = zip_bytes(with_manifest(m, f) | {"pad.bin": bytes(64 * 1024 * 1024)})
+    ignored = zip_files(with_manifest(m, f) | {"pad.bin": bytes(64 * 1024 * 1024)})
     loaded = load_bundle(ignored, limits=BundleLimits(max_total_bytes=1024 * 1024))
     assert any("pad.bin" in w for w in loaded.warnings), loaded.warnings
     # a named member is ratio-checked on its own and in total
     mk = m["views"][0]["mask"]["file"]
-    bomb = zip_bytes(with_manifest(m, {**f, mk: bytes(4 * 1024 * 1024)}))
+    bomb = zip_files(with_manifest(m, {**f, mk: bytes(4 * 1024 * 1024)}))
     err = expect_error(lambda: load_bundle(bomb, limits=limits), "compression ratio", "zip bomb")
     assert any(p.loc == f"archive[{mk!r}]" for p in err.problems), err.problems
     # declared sizes over the byte budget are refused before anything is decompressed
@@ -342,7 +336,7 @@ def test_too_many_files_and_bytes_in_upload() -> None:
     m, f = parts()
     expect_error(lambda: load_bundle_from_parts(m, f, limits=BundleLimits(max_files=2)), "files: 4 files; the limit is 2")
     expect_error(lambda: load_bundle_from_parts(m, f, limits=BundleLimits(max_total_bytes=100)), "the limit is 100")
-    expect_error(lambda: load_bundle(zip_bytes(with_manifest(m, f)), limits=BundleLimits(max_files=2)), "limit is 2")
+    expect_error(lambda: load_bundle(zip_files(with_manifest(m, f)), limits=BundleLimits(max_files=2)), "limit is 2")
 
 
 def test_too_many_views() -> None:

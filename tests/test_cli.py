@@ -14,7 +14,7 @@ import pytest
 
 from clients.cli import build_parser as client_parser
 from clients.cli import main as client_main
-from service.testing import ServerProcess
+from .harness import ServerProcess
 from shadowcorr.cli import EVAL_COLUMNS, build_parser, main
 from shadowcorr.io import write_bundle
 

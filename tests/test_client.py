@@ -17,7 +17,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -25,7 +24,6 @@ import time
 from pathlib import Path
 from typing import Iterator
 
-import httpx
 import numpy as np
 import pytest
 
@@ -41,6 +39,7 @@ from clients import (
 from clients.cli import main as cli_main
 from shadowcorr.result import Result
 
+from .harness import ServerProcess
 from .paths import REPO
 from .paths import SAMPLE_DIR as UE_SAMPLE
 from .scenes import sphere_scene
@@ -51,105 +50,30 @@ SYNTH_SCENES = 5
 pytestmark = pytest.mark.skipif(not (UE_SAMPLE / "Set2001_Depth_0.exr").exists(), reason="sample data missing")
 
 
-# --------------------------------------------------------------------------- server process
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Server:
-    """``python -m service`` on a loopback port, in its own process group."""
-
-    def __init__(self, log_dir: Path, name: str, env: dict[str, str], token: str | None = None) -> None:
-        self.port = _free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.token = token
-        self.log = log_dir / f"{name}.log"
-        self.env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWCORR_")}
-        self.env.update({"SHADOWCORR_WORKERS": "1", "SHADOWCORR_LOG_LEVEL": "warning", **env})
-        if token:
-            self.env["SHADOWCORR_AUTH_TOKEN"] = token
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def launch(self) -> None:
-        with open(self.log, "ab") as log:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(self.port)],
-                cwd=REPO, env=self.env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-
-    def wait_ready(self, timeout: float = 150.0) -> "Server":
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            assert self.proc is not None
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.log_tail()}")
-            try:
-                if httpx.get(self.url + "/health", timeout=2.0).status_code == 200:
-                    return self
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        self.stop()
-        raise TimeoutError(f"server not ready after {timeout:.0f} s:\n{self.log_tail()}")
-
-    def stop(self, timeout: float = 30.0) -> None:
-        """SIGTERM (graceful), then SIGKILL of the process group (its worker processes too)."""
-        if self.proc is None:
-            return
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                pass
-        try:
-            os.killpg(self.proc.pid, signal.SIGKILL)  # our own group: leftover workers, if any
-        except ProcessLookupError:
-            pass
-        self.proc.wait(10)
-
-    def log_tail(self, n: int = 40) -> str:
-        return "\n".join(self.log.read_text(errors="replace").splitlines()[-n:]) if self.log.exists() else ""
-
-    def requests(self, route: str = "/correspond") -> dict[str, int]:
-        """Requests served so far on ``route``, by status code (from /metrics)."""
-        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
-        text = httpx.get(self.url + "/metrics", headers=headers, timeout=10).text
-        counts: dict[str, int] = {}
-        pattern = re.compile(r'^shadowcorr_http_requests_total\{(.*)\} ([0-9.e+]+)$')
-        for line in text.splitlines():
-            m = pattern.match(line)
-            if not m:
-                continue
-            labels = dict(re.findall(r'(\w+)="([^"]*)"', m.group(1)))
-            if labels.get("route") == route:
-                counts[labels["status"]] = counts.get(labels["status"], 0) + int(float(m.group(2)))
-        return counts
-
-
 @pytest.fixture(scope="module")
-def servers(tmp_path_factory) -> Iterator[tuple[Server, Server]]:
+def servers(tmp_path_factory) -> Iterator[tuple[ServerProcess, ServerProcess]]:
     logs = tmp_path_factory.mktemp("server-logs")
-    main = Server(logs, "main", {}, token=TOKEN)
-    tiny = Server(logs, "tiny", {"SHADOWCORR_QUEUE_SIZE": "1", "SHADOWCORR_RETRY_AFTER_S": "1"})
+    quiet = {"SHADOWCORR_WORKERS": "1", "SHADOWCORR_LOG_LEVEL": "warning"}
+    main = ServerProcess(env=quiet, log_path=logs / "main.log", token=TOKEN, auth=True)
+    tiny = ServerProcess(env={**quiet, "SHADOWCORR_QUEUE_SIZE": "1", "SHADOWCORR_RETRY_AFTER_S": "1"},
+                         log_path=logs / "tiny.log")
     # Both start at once: loading torch and warming up overlaps with the other's I/O.
     main.launch()
     tiny.launch()
     try:
-        yield main.wait_ready(), tiny.wait_ready()
+        yield main.wait_ready(150), tiny.wait_ready(150)
     finally:
         main.stop()
         tiny.stop()
 
 
 @pytest.fixture(scope="module")
-def server(servers) -> Server:
+def server(servers) -> ServerProcess:
     return servers[0]
 
 
 @pytest.fixture(scope="module")
-def tiny_server(servers) -> Server:
+def tiny_server(servers) -> ServerProcess:
     return servers[1]
 
 
@@ -195,14 +119,14 @@ def lines(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def cli(server: Server, *args: str) -> int:
+def cli(server: ServerProcess, *args: str) -> int:
     """Run ``shadowcorr-client`` in-process (the test process has already paid for its imports)."""
     conn = ["--server", server.url] + (["--token", server.token] if server.token else [])
     command, rest = args[0], list(args[1:])
     return cli_main([command, *rest, *conn])
 
 
-def cli_subprocess(server: Server, *args: str, out: Path) -> subprocess.Popen[str]:
+def cli_subprocess(server: ServerProcess, *args: str, out: Path) -> subprocess.Popen[str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWCORR_")}
     env["SHADOWCORR_SERVER"] = server.url  # the environment variables work as well as the flags
     if server.token:

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 import shadowcorr
-from service.testing import ServerProcess
+from .harness import ServerProcess
 from shadowcorr.io import write_bundle, write_bundle_archive
 
 from .paths import REPO, SAMPLE_DIR

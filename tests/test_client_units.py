@@ -33,8 +33,9 @@ from clients import (
 from clients.client import correspond_params, error_from_response
 from clients.records import RecordWriter, UploadRecord, format_summary, percentile, read_records, summarize_records
 from clients.retry import is_retryable_exception
-from clients.upload import archive_content_type
+from clients.request_body import archive_content_type
 
+from .harness import free_port
 from .paths import REPO
 from .paths import SAMPLE_DIR as UE_SAMPLE
 from .scenes import sphere_scene
@@ -146,11 +147,7 @@ def test_connection_refused_is_retried_with_backoff_then_fails(unused_port):
 
 @pytest.fixture
 def unused_port() -> int:
-    import socket
-
-    with socket.socket() as s:  # bound then closed: nothing listens there for the test's duration
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_port()  # bound then closed: nothing listens there for the test's duration
 
 
 # --------------------------------------------------------------------------- request / response
@@ -319,7 +316,7 @@ def test_summary_percentiles_and_metrics():
     s = summarize_records(["a", "b", "c", "d"], 1, run, latest, wall_s=2.0)
     assert (s.scenes, s.skipped, s.sent, s.ok, s.failed, s.pending) == (4, 1, 2, 1, 1, 1)
     assert s.metrics["rock_purity"] == pytest.approx((95.0, 5.0, 2))
-    assert s.metrics["cluster_purity"] == pytest.approx((80.0, 0.0, 1))  # NaN skipped, as shadowcorr.metrics does
+    assert s.metrics["cluster_purity"] == pytest.approx((80.0, 0.0, 1))  # NaN skipped, as shadowcorr.evaluation.summarize does
     assert s.latency_p50_ms == 100.0
     table = format_summary(s)
     assert "rock purity" in table and "95.00 ± 5.00" in table and "not yet sent" in table

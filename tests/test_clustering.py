@@ -1,4 +1,4 @@
-"""Tests for shadowcorr.clustering: MeanShift parity with scikit-learn, merging, voting."""
+"""Tests for shadowcorr.stages (stage 09 clustering): MeanShift parity with scikit-learn, merging, voting."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from sklearn.cluster import MeanShift
 from sklearn.metrics import adjusted_rand_score
 from threadpoolctl import threadpool_limits
 
-from shadowcorr import clustering
-from shadowcorr.clustering import majority_vote, mean_shift, merge_small_clusters
+from shadowcorr.stages import _09_clustering as clustering  # private knobs: block sizes
+from shadowcorr.stages import majority_vote, mean_shift, merge_small_clusters
 
 
 def _unit_blobs(n: int, dim: int, k: int, spread: float, noise: float, seed: int) -> np.ndarray:

@@ -7,7 +7,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,6 +16,8 @@ import httpx
 import pytest
 
 import shadowcorr
+
+from .harness import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = (ROOT / "Dockerfile").read_text()
@@ -70,12 +71,6 @@ def test_version_is_reported_everywhere():
     assert f"## {shadowcorr.__version__}" in (ROOT / "CHANGELOG.md").read_text()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow
 def test_dockerfile_install_and_start_steps_in_a_fresh_venv(tmp_path):
     build = [a for w, a in instructions(DOCKERFILE) if w == "RUN" and "install-runtime.sh" in a]
@@ -88,7 +83,7 @@ def test_dockerfile_install_and_start_steps_in_a_fresh_venv(tmp_path):
 
     # The image's environment, with the address moved to loopback for the test.
     image_env = dict(re.findall(r"(SHADOWCORR_\w+)=(\S+)", dict(runtime_stage())["ENV"]))
-    port = _free_port()
+    port = free_port()
     run_env = {**env, **image_env, "SHADOWCORR_HOST": "127.0.0.1", "SHADOWCORR_PORT": str(port),
                "SHADOWCORR_WORKERS": "1", "PATH": f"{venv / 'bin'}:{env.get('PATH', '')}"}
     entry = json.loads(dict(runtime_stage())["ENTRYPOINT"]) + json.loads(dict(runtime_stage())["CMD"])

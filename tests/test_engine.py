@@ -8,10 +8,11 @@ import pytest
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle, View
-from shadowcorr.segment_embedding import cooccurrence, segment_embedding_loss, train_segment_embeddings
 from shadowcorr.errors import DepthRangeError
-from shadowcorr.segments import extract_segments
-from shadowcorr.shadows import beta_profile, cast_shadows, segment_shells, voxel_downsample
+from shadowcorr.stages import (
+    beta_profile, cast_shadows, cooccurrence, extract_segments, segment_embedding_loss, segment_shells,
+    train_segment_embeddings, voxel_downsample,
+)
 
 from .paths import REFERENCE_CHECKPOINT as REFERENCE
 from .paths import SAMPLE_DIR as SAMPLE

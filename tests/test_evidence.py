@@ -9,9 +9,10 @@ import pytest
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle
-from shadowcorr.grouping import SegmentGraph, agglomerate, link_components, segment_confidence, split_mask_ids
-from shadowcorr.segments import extract_segments
-from shadowcorr.surface_evidence import SurfaceEvidence, sample_segment_points, surface_evidence
+from shadowcorr.stages import (
+    SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, link_components, sample_segment_points,
+    segment_confidence, split_mask_ids, surface_evidence,
+)
 
 from .scenes import sphere_scene
 from .test_engine import FIELD_CENTRES, FIELD_RADII, same_partition

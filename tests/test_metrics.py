@@ -1,4 +1,4 @@
-"""Tests for shadowcorr.metrics: hand-checked purities, coverage, ARI and summaries."""
+"""Tests for shadowcorr.evaluation: hand-checked purities, coverage, ARI and summaries."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from shadowcorr.metrics import segment_metrics, summarize, voxel_ari
+from shadowcorr.evaluation import segment_metrics, summarize, voxel_ari
 
 
 def test_perfect_prediction_with_permuted_ids() -> None:

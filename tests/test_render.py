@@ -27,7 +27,7 @@ from shadowcorr.render import (
 from shadowcorr.render.maps import MapScene, choose_frame, render_maps
 from shadowcorr.render.palette import CORRECT, SPLIT, WARNING_STRIPES, WRONG
 from shadowcorr.result import ObjectSummary, Result, SegmentLabel
-from shadowcorr.segments import extract_segments, find_blobs
+from shadowcorr.stages import extract_segments, find_blobs
 
 from .scenes import look_at, sphere_scene
 

@@ -7,7 +7,7 @@ import pytest
 from scipy.sparse.csgraph import connected_components
 
 from shadowcorr import SceneLimitError, ShadowCorrConfig, correspond, load_model, prepare
-from shadowcorr.segment_embedding import cooccurrence, segment_embedding_loss, train_segment_embeddings
+from shadowcorr.stages import cooccurrence, segment_embedding_loss, train_segment_embeddings
 
 from .scenes import sphere_scene
 

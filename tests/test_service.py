@@ -14,14 +14,13 @@ import os
 import signal
 import threading
 import time
-import zipfile
 
 import httpx
 import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from service.testing import ServerProcess
+from .harness import ServerProcess, zip_files, zipped_bundle
 
 from .paths import SAMPLE_DIR
 
@@ -66,13 +65,9 @@ def client(server):
 def synthetic():
     """A small valid scene: (zip bytes, manifest dict, files dict, local labels)."""
     from shadowcorr import correspond, load_bundle
-    from shadowcorr.io import bundle_to_parts
-
     from service.synthetic import synthetic_bundle
 
-    bundle = synthetic_bundle(n_rocks=3, n_views=3)
-    manifest, files = bundle_to_parts(bundle)
-    zipped = _zip({"manifest.json": json.dumps(manifest).encode(), **files})
+    zipped, manifest, files = zipped_bundle(synthetic_bundle(n_rocks=3, n_views=3))
     labels = correspond(load_bundle(zipped)).labels
     return zipped, manifest, files, labels
 
@@ -91,14 +86,6 @@ def sample(tmp_path_factory):
     manifest, files = bundle_to_parts(bundle)
     local = correspond(load_bundle(path))
     return path, manifest, files, local
-
-
-def _zip(files: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
-        for name, data in files.items():
-            zf.writestr(name, data)
-    return buf.getvalue()
 
 
 def _parts(manifest: dict | str, files: dict[str, bytes]) -> list:
@@ -344,18 +331,18 @@ def _bad_cases(synthetic) -> list[tuple[str, dict, tuple[int, ...], str]]:
 
     pickled = io.BytesIO()
     np.save(pickled, np.array([{"evil": 1}], dtype=object), allow_pickle=True)
-    npz = _zip({"points.npy": pickled.getvalue()})
+    npz = zip_files({"points.npy": pickled.getvalue()})
     seg_manifest = {
         "units": "cm",
         "views": [{"name": v["name"], "pose": v["pose"]} for v in manifest["views"]],
         "segments": {"file": "segments.npz"},
     }
 
-    traversal = _zip({"manifest.json": json.dumps(manifest).encode(), "../evil.txt": b"x",
+    traversal = zip_files({"manifest.json": json.dumps(manifest).encode(), "../evil.txt": b"x",
                       **files})
     # ~65 KiB compressed in place of a mask the manifest names: a bomb (members it does not
     # name are never decompressed, see test_service_faults)
-    bomb = _zip({"manifest.json": json.dumps(manifest).encode(), **files, mask_key: b"\0" * (UNCOMPRESSED_LIMIT + MiB)})
+    bomb = zip_files({"manifest.json": json.dumps(manifest).encode(), **files, mask_key: b"\0" * (UNCOMPRESSED_LIMIT + MiB)})
 
     truncated_body = (
         b"--XyZ\r\nContent-Disposition: form-data; name=\"bundle\"; filename=\"a.zip\"\r\n\r\n" + zipped[:200]

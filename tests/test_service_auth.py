@@ -12,7 +12,7 @@ import time
 import httpx
 import pytest
 
-from service.testing import ServerProcess
+from .harness import ServerProcess, zipped_bundle
 
 from .paths import SAMPLE_DIR
 
@@ -36,20 +36,9 @@ def server():
 @pytest.fixture(scope="module")
 def tiny():
     """A very small valid scene as a zip (answers well within the 1 s timeout)."""
-    import io
-    import zipfile
-
-    from shadowcorr.io import bundle_to_parts
-
     from service.synthetic import synthetic_bundle
 
-    manifest, files = bundle_to_parts(synthetic_bundle(n_rocks=2, n_views=2, width=96, height=72))
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as zf:
-        zf.writestr("manifest.json", json.dumps(manifest))
-        for k, v in files.items():
-            zf.writestr(k, v)
-    return buf.getvalue()
+    return zipped_bundle(synthetic_bundle(n_rocks=2, n_views=2, width=96, height=72))[0]
 
 
 def test_bearer_token_guards_everything_but_health(server, tiny):
@@ -141,7 +130,7 @@ def test_bad_model_or_setting_fails_fast(tmp_path):
     import subprocess
     import sys
 
-    from service.testing import REPO_ROOT
+    from .harness import REPO_ROOT
 
     env = {k: v for k, v in __import__("os").environ.items() if not k.startswith("SHADOWCORR_")}
     bad = tmp_path / "model.safetensors"

@@ -18,15 +18,13 @@ import signal
 import socket
 import threading
 import time
-import zipfile
 
 import httpx
 import pytest
 
-from service.testing import ServerProcess
+from .harness import ServerProcess, add_zeros_member, zip_files, zipped_bundle
 
 from .paths import SAMPLE_DIR
-from .test_service import _zip
 
 MiB = 1024 * 1024
 HEADER_TIMEOUT_S = 2.0
@@ -77,12 +75,9 @@ def server(spool_dir):
 @pytest.fixture(scope="module")
 def tiny() -> tuple[bytes, dict, dict]:
     """A small valid scene: (zip bytes, manifest, files)."""
-    from shadowcorr.io import bundle_to_parts
-
     from service.synthetic import synthetic_bundle
 
-    manifest, files = bundle_to_parts(synthetic_bundle(n_rocks=3, n_views=3))
-    return _zip({"manifest.json": json.dumps(manifest).encode(), **files}), manifest, files
+    return zipped_bundle(synthetic_bundle(n_rocks=3, n_views=3))
 
 
 @pytest.fixture(scope="module")
@@ -268,7 +263,7 @@ def test_large_bodies_are_spooled_and_budgeted(server, spool_dir):
 def test_bad_units_are_refused_naming_units_and_max_depth(server, tiny):
     _, manifest, files = tiny
     wrong = dict(manifest, units="m")  # a centimetre scene declared in metres: every depth beyond max_depth
-    r = httpx.post(server.url + "/correspond", files={"bundle": ("s.zip", _zip({"manifest.json": json.dumps(wrong).encode(),
+    r = httpx.post(server.url + "/correspond", files={"bundle": ("s.zip", zip_files({"manifest.json": json.dumps(wrong).encode(),
                                                                                  **files}))}, timeout=60)
     assert r.status_code == 422 and r.json()["error"] == "no_valid_depth", r.text
     assert "units" in r.json()["message"] and "max_depth" in r.json()["message"]
@@ -277,13 +272,8 @@ def test_bad_units_are_refused_naming_units_and_max_depth(server, tiny):
 def test_archive_members_the_manifest_does_not_name_are_never_decompressed(server, tiny):
     zipped, manifest, files = tiny
     # 256 MiB of zeros (~250 KiB compressed, 1000:1) beside the bundle, over the 32 MiB limit
-    buf = io.BytesIO(zipped)
-    with zipfile.ZipFile(buf, "a", zipfile.ZIP_DEFLATED) as zf:
-        with zf.open("extra/padding.bin", "w", force_zip64=True) as member:
-            zero = bytes(MiB)
-            for _ in range(256):
-                member.write(zero)
-    r = httpx.post(server.url + "/correspond", files={"bundle": ("s.zip", buf.getvalue())}, timeout=60)
+    padded = add_zeros_member(zipped, 256, "extra/padding.bin")
+    r = httpx.post(server.url + "/correspond", files={"bundle": ("s.zip", padded)}, timeout=60)
     assert r.status_code == 200, r.text
     assert any("extra/padding.bin" in w for w in r.json()["warnings"]), r.json()["warnings"]
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from service.testing import ServerProcess
+from .harness import ServerProcess
 
 CONFIG = Path(__file__).with_name("schemathesis.toml")
 MAX_TIME_S = 40

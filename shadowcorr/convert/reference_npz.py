@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from ..bundle import PointSegments, SceneBundle, View, pose_to_opencv
-from ..io.bundle_files import write_bundle
+from ..io import write_bundle
 from ..poses import look_at_pose
 
 __all__ = ["read_reference_npz", "convert_reference_npz"]

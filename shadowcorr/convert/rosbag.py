@@ -39,7 +39,7 @@ from __future__ import annotations
 import bisect
 import logging
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -48,8 +48,8 @@ import numpy as np
 from ..bundle import Intrinsics, SceneBundle, View
 from ..errors import BundleError, Problem
 from ..io import images
-from ..io.bundle_files import write_bundle
-from ..poses import quaternion_to_matrix, slerp
+from ..io import write_bundle
+from ._tf import TransformTree, fmt_stamp, stamp_ns
 
 __all__ = [
     "BagCamera",
@@ -132,108 +132,6 @@ def discover_cameras(topics: Mapping[str, str | None]) -> list[BagCamera]:
 
 
 # --------------------------------------------------------------------------- time
-def _stamp_ns(header: Any) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
-def _fmt_stamp(ns: int) -> str:
-    return f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d} s"
-
-
-# --------------------------------------------------------------------------- tf
-@dataclass
-class _Track:
-    """All transforms recorded from ``parent`` to one child frame, sorted by stamp."""
-
-    parent: str
-    static: bool
-    stamps: list[int] = field(default_factory=list)
-    translations: list[np.ndarray] = field(default_factory=list)
-    rotations: list[np.ndarray] = field(default_factory=list)  # quaternions (x, y, z, w)
-
-
-class TransformTree:
-    """The tf tree of a bag: ``lookup(fixed, frame, stamp)`` = pose of ``frame`` in ``fixed``.
-
-    Each child frame has one parent (tf's rule).  Static transforms hold at every
-    time; dynamic ones are interpolated between the two samples around the stamp and
-    may be extrapolated by at most ``tolerance_ns`` (then the nearest sample is used).
-    """
-
-    def __init__(self, tolerance_ns: int = 0) -> None:
-        self.tracks: dict[str, _Track] = {}
-        self.tolerance_ns = tolerance_ns
-        self.problems: list[Problem] = []
-
-    def add(self, msg: Any, static: bool, topic: str) -> None:
-        for tr in msg.transforms:
-            parent, child = tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/")
-            track = self.tracks.setdefault(child, _Track(parent, static))
-            if track.parent != parent:
-                self.problems.append(Problem(
-                    loc=f"topics[{topic}]",
-                    msg=f"frame {child!r} has two parents, {track.parent!r} and {parent!r} (at {_fmt_stamp(_stamp_ns(tr.header))})"))
-                continue
-            t, r = tr.transform.translation, tr.transform.rotation
-            stamp = _stamp_ns(tr.header)
-            i = bisect.bisect_right(track.stamps, stamp)
-            track.stamps.insert(i, stamp)
-            track.translations.insert(i, np.array([t.x, t.y, t.z], dtype=np.float64))
-            track.rotations.insert(i, np.array([r.x, r.y, r.z, r.w], dtype=np.float64))
-            track.static = track.static and static
-
-    def _chain(self, frame: str) -> list[str]:
-        """``frame`` and its ancestors up to the root."""
-        chain = [frame]
-        while chain[-1] in self.tracks and len(chain) <= len(self.tracks):
-            chain.append(self.tracks[chain[-1]].parent)
-        return chain
-
-    def _edge(self, child: str, stamp: int) -> np.ndarray:
-        """4x4 pose of ``child`` in its parent at ``stamp``; ``LookupError`` when out of range."""
-        tr = self.tracks[child]
-        if tr.static:
-            k = len(tr.stamps) - 1  # a re-published static transform: the latest one holds
-            return _rigid(tr.rotations[k], tr.translations[k])
-        i = bisect.bisect_left(tr.stamps, stamp)
-        if i < len(tr.stamps) and tr.stamps[i] == stamp:
-            return _rigid(tr.rotations[i], tr.translations[i])
-        if 0 < i < len(tr.stamps):
-            t0, t1 = tr.stamps[i - 1], tr.stamps[i]
-            w = (stamp - t0) / (t1 - t0)
-            return _rigid(slerp(tr.rotations[i - 1], tr.rotations[i], w),
-                          (1 - w) * tr.translations[i - 1] + w * tr.translations[i])
-        nearest = 0 if i == 0 else len(tr.stamps) - 1
-        if abs(tr.stamps[nearest] - stamp) <= self.tolerance_ns:
-            return _rigid(tr.rotations[nearest], tr.translations[nearest])
-        raise LookupError(
-            f"transform {tr.parent!r} -> {child!r} is known from {_fmt_stamp(tr.stamps[0])} to "
-            f"{_fmt_stamp(tr.stamps[-1])}, not at {_fmt_stamp(stamp)} (no extrapolation beyond the sync tolerance)")
-
-    def lookup(self, fixed: str, frame: str, stamp: int) -> np.ndarray:
-        """Pose (4x4, ``frame`` -> ``fixed``) at ``stamp``; ``LookupError`` naming the frames otherwise."""
-        fixed, frame = fixed.lstrip("/"), frame.lstrip("/")
-        up_frame, up_fixed = self._chain(frame), self._chain(fixed)
-        common = next((f for f in up_frame if f in up_fixed), None)
-        if common is None:
-            known = ", ".join(sorted(set(self.tracks) | {t.parent for t in self.tracks.values()})) or "none"
-            raise LookupError(f"no transform from {fixed!r} to {frame!r} at {_fmt_stamp(stamp)}: "
-                              f"the frames are not connected in /tf and /tf_static (frames known: {known})")
-        root_frame, root_fixed = np.eye(4), np.eye(4)
-        for child in up_frame[: up_frame.index(common)]:
-            root_frame = self._edge(child, stamp) @ root_frame
-        for child in up_fixed[: up_fixed.index(common)]:
-            root_fixed = self._edge(child, stamp) @ root_fixed
-        return np.linalg.inv(root_fixed) @ root_frame
-
-
-def _rigid(quaternion: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    m = np.eye(4)
-    m[:3, :3] = quaternion_to_matrix(quaternion)
-    m[:3, 3] = translation
-    return m
-
-
 # --------------------------------------------------------------------------- images
 def _image_array(msg: Any, dtype: str) -> np.ndarray:
     """(H, W) array of a one-channel ``sensor_msgs/Image``, honouring ``step`` and ``is_bigendian``."""
@@ -415,9 +313,9 @@ def _first_pass(reader: Any, cams: Sequence[BagCamera], tolerance_ns: int):
         if conn.topic in TF_TOPICS:
             tree.add(msg, conn.topic == "/tf_static", conn.topic)
         elif conn.topic in info_topics:
-            infos[conn.topic].append((_stamp_ns(msg.header), msg))
+            infos[conn.topic].append((stamp_ns(msg.header), msg))
         else:
-            frames[conn.topic].append(_Frame(len(frames[conn.topic]), _stamp_ns(msg.header),
+            frames[conn.topic].append(_Frame(len(frames[conn.topic]), stamp_ns(msg.header),
                                              msg.header.frame_id.lstrip("/"), msg.encoding,
                                              (int(msg.width), int(msg.height))))
     return tree, infos, frames
@@ -440,7 +338,7 @@ def _pairs(cams: Sequence[BagCamera], frames: Mapping[str, list[_Frame]], tolera
             problems.append(Problem(loc=loc, msg=(
                 f"no depth image of {cam.depth_topic!r} has a mask of {cam.mask_topic!r} with the same header.stamp"
                 f" (within the sync tolerance of {tolerance_ns / 1e9:g} s); first stamps "
-                f"{_fmt_stamp(depths[0].stamp)} and {_fmt_stamp(masks[0].stamp)}: raise --sync-tolerance")))
+                f"{fmt_stamp(depths[0].stamp)} and {fmt_stamp(masks[0].stamp)}: raise --sync-tolerance")))
             continue
         kept = _thin(pairs, every, max_views)
         for k, (d, m) in enumerate(kept):
@@ -470,12 +368,12 @@ def _views(reader: Any, pairs: list[_Pair], tree: TransformTree, infos: Mapping[
         try:
             depth = _depth_metres(pixels[pair.camera.depth_topic, pair.depth.index])
         except ValueError as exc:
-            problems.append(Problem(loc=f"{loc}.depth", msg=f"{pair.camera.depth_topic} at {_fmt_stamp(pair.depth.stamp)}: {exc}"))
+            problems.append(Problem(loc=f"{loc}.depth", msg=f"{pair.camera.depth_topic} at {fmt_stamp(pair.depth.stamp)}: {exc}"))
             continue
         try:
             mask = _mask_ids(pixels[pair.camera.mask_topic, pair.mask.index])
         except ValueError as exc:
-            problems.append(Problem(loc=f"{loc}.mask", msg=f"{pair.camera.mask_topic} at {_fmt_stamp(pair.mask.stamp)}: {exc}"))
+            problems.append(Problem(loc=f"{loc}.mask", msg=f"{pair.camera.mask_topic} at {fmt_stamp(pair.mask.stamp)}: {exc}"))
             continue
         views.append(View(name=pair.name, pose=pose, intrinsics=intrinsics, depth=depth, mask=mask))
     return views, problems
@@ -485,7 +383,7 @@ def _check_pair(pair: _Pair, loc: str, tree: TransformTree, infos: Mapping[str, 
                 fixed_frame: str) -> tuple[Intrinsics, np.ndarray] | Problem:
     """Intrinsics and pose of a pair, or the first problem with it."""
     cam, d, m = pair.camera, pair.depth, pair.mask
-    at = f"at {_fmt_stamp(d.stamp)}"
+    at = f"at {fmt_stamp(d.stamp)}"
     if d.encoding not in DEPTH_ENCODINGS:
         return Problem(loc=f"{loc}.depth", msg=f"{cam.depth_topic} {at} has encoding {d.encoding!r}; depth must be "
                                                "32FC1 (metres) or 16UC1 (millimetres)")
@@ -506,7 +404,7 @@ def _check_pair(pair: _Pair, loc: str, tree: TransformTree, infos: Mapping[str, 
                                                     "intrinsics are unknown (give INFO_TOPIC in --camera)")
     stamp, info = min(recorded, key=lambda si: abs(si[0] - d.stamp))
     k = _calibration(info)
-    info_at = f"{cam.camera_info_topic} at {_fmt_stamp(stamp)}"
+    info_at = f"{cam.camera_info_topic} at {fmt_stamp(stamp)}"
     if k.size != 9 or not np.all(np.isfinite(k)) or k[0] <= 0 or k[4] <= 0:
         return Problem(loc=f"{loc}.intrinsics", msg=f"{info_at} is uncalibrated (k = {k.tolist()}; fx = k[0] and "
                                                     "fy = k[4] must be > 0): calibrate the camera")

@@ -34,7 +34,7 @@ import numpy as np
 from ..bundle import Intrinsics, SceneBundle, View
 from ..errors import BundleError, Problem, view_loc
 from ..io import images
-from ..io.bundle_files import write_bundle
+from ..io import write_bundle
 
 __all__ = [
     "UE_CLASS_COLOURS",

@@ -16,6 +16,8 @@ bundle archive is read into memory too), validates before it allocates, and rais
 Depth conventions: the returned depth is float32 ``stored value * scale``; invalid
 pixels (non-finite or <= 0) are set to 0, which is what ``View.depth`` means by invalid.
 Masks are returned as int32 instance ids, 0 = background.
+
+The encoders (``encode_*``, the writers' side) live in ``_encode`` and are offered here too.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import OpenEXR
 from PIL import Image
 
 from ..errors import BundleError
+from ._encode import encode_depth_exr, encode_depth_png16, encode_mask_png, encode_mask_png_rgb, encode_npy
 
 __all__ = [
     "DEFAULT_MAX_PIXELS",
@@ -439,74 +442,3 @@ def read_mask(
     if fmt == "npy":
         return read_mask_npy(data, shape=shape, max_pixels=max_pixels, loc=loc)
     raise _fail(loc, f"unknown mask format {fmt!r}")
-
-
-# --------------------------------------------------------------------------- writers
-def encode_depth_exr(depth: np.ndarray, *, half: bool = False, channel: str = "Z") -> bytes:
-    """Single-channel ZIP-compressed EXR; float32 by default so every value survives exactly."""
-    arr = np.ascontiguousarray(depth, dtype=np.float16 if half else np.float32)
-    if arr.ndim != 2:
-        raise ValueError(f"depth must be 2-D, got shape {arr.shape}")
-    f = OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {channel: arr})
-    buf = io.BytesIO()
-    f.write(buf)
-    return buf.getvalue()
-
-
-def encode_depth_png16(depth: np.ndarray, scale: float) -> bytes:
-    """16-bit PNG storing ``round(depth / scale)``; invalid depth -> 0.
-
-    Lossy by design (quantised to ``scale``).  A valid depth that would round to 0 is
-    stored as 1 so it does not silently turn invalid; a depth above ``65535 * scale``
-    raises, because clipping would move the surface.
-    """
-    if not scale > 0:
-        raise ValueError("scale must be > 0")
-    d = np.asarray(depth, dtype=np.float64)
-    if d.ndim != 2:
-        raise ValueError(f"depth must be 2-D, got shape {d.shape}")
-    valid = np.isfinite(d) & (d > 0)
-    q = np.zeros(d.shape, dtype=np.float64)
-    q[valid] = np.maximum(np.rint(d[valid] / scale), 1.0)
-    if q.max(initial=0) > 65535:
-        raise ValueError(f"depth {d[valid].max():g} does not fit a 16-bit PNG at scale {scale:g}; use a larger scale")
-    buf = io.BytesIO()
-    Image.fromarray(q.astype(np.uint16)).save(buf, format="PNG")
-    return buf.getvalue()
-
-
-def encode_mask_png(mask: np.ndarray) -> bytes:
-    """Instance ids as a single-channel PNG: 8-bit when ids <= 255, else 16-bit."""
-    m = np.asarray(mask)
-    if m.ndim != 2:
-        raise ValueError(f"mask must be 2-D, got shape {m.shape}")
-    lo, hi = (int(m.min()), int(m.max())) if m.size else (0, 0)
-    if lo < 0 or hi > 65535:
-        raise ValueError(f"mask ids {lo}..{hi} do not fit a 16-bit PNG; use mask_format='npy'")
-    buf = io.BytesIO()
-    Image.fromarray(m.astype(np.uint8 if hi <= 255 else np.uint16)).save(buf, format="PNG")
-    return buf.getvalue()
-
-
-def encode_mask_png_rgb(mask: np.ndarray, palette: Mapping[int, Sequence[int]]) -> bytes:
-    """Instance ids -> colour-coded RGB PNG; ids missing from ``palette`` raise."""
-    m = np.asarray(mask)
-    ids = np.array(sorted(palette), dtype=np.int64)
-    present = np.unique(m)
-    missing = np.setdiff1d(present, ids)
-    missing = missing[missing != 0]
-    if missing.size:
-        raise ValueError(f"mask ids {missing[:10].tolist()} have no palette colour")
-    lut_ids = np.union1d(ids, [0])
-    colours = np.array([tuple(palette.get(int(i), (0, 0, 0))) for i in lut_ids], dtype=np.uint8)
-    rgb = colours[np.searchsorted(lut_ids, m)]
-    buf = io.BytesIO()
-    Image.fromarray(rgb).save(buf, format="PNG")
-    return buf.getvalue()
-
-
-def encode_npy(arr: np.ndarray) -> bytes:
-    """``.npy`` bytes (never pickled: object arrays raise)."""
-    buf = io.BytesIO()
-    np.save(buf, np.asarray(arr), allow_pickle=False)
-    return buf.getvalue()

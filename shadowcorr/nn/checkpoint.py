@@ -102,7 +102,8 @@ def reference_card() -> ModelCard:
         notes=(
             "The authors' reference weights (shadowcorr_best.pth), converted unchanged; shipped as the default "
             "until the project's own trained model replaces it. Run with neighbourhood 'reference': the reference "
-            "fed its sparse convolutions positions in scene units, so only the centre kernel taps ever act."
+            "fed its sparse convolutions positions in scene units, so only the centre kernel taps ever act; the "
+            "network keeps those taps (per-voxel linear layers) and drops the rest."
         ),
         license="MIT, Copyright (c) 2026 Yiyan Ruan and Erik Komendera (see LICENSE-reference)",
     )
@@ -152,8 +153,29 @@ def check_state_dict(state: Mapping[str, Any], net: ShadowCorrNet, source: str =
         raise ValueError(f"{source}: state dict does not match the model card's architecture: " + "; ".join(problems))
 
 
+def _centre_taps(state: Mapping[str, Any], config: NetConfig) -> dict[str, Any]:
+    """Reference-layout kernels ``(s^3, in, out)`` of a ``'reference'`` network reduced to their centre tap.
+
+    The authors' checkpoint (and model files written before the network kept only what it
+    runs) stores the full 3^3 and 5^3 kernels, of which a ``'reference'`` network uses the
+    centre tap alone (SPEC §3): that tap is its per-voxel linear weight, bit for bit.
+    Tensors of any other shape are left for :func:`check_state_dict` to report.
+    """
+    out = dict(state)
+    if config.neighbourhood != "reference":
+        return out
+    widths = (config.in_features, *config.widths)
+    for i, name in enumerate(("conv1", "conv2")):
+        kernel = out.get(f"{name}.kernel")
+        taps = config.kernel_sizes[i] ** 3
+        if isinstance(kernel, torch.Tensor) and tuple(kernel.shape) == (taps, widths[i], widths[i + 1]):
+            out[f"{name}.kernel"] = kernel[taps // 2].clone()
+    return out
+
+
 def _build(state: Mapping[str, torch.Tensor], card: ModelCard, source: str) -> ShadowCorrNet:
     net = ShadowCorrNet(card.architecture)
+    state = _centre_taps(state, card.architecture)
     check_state_dict(state, net, source)
     net.load_state_dict(dict(state), strict=True)
     return net

@@ -1,19 +1,26 @@
-"""The ShadowCorr voxel embedding network (SPEC §2 step 10).
+"""The ShadowCorr voxel embedding network (SPEC §2 step 10): per-voxel layers and k-NN attention.
 
-    input_bn -> conv1 (3^3) -> bn1 -> ReLU -> local_attn1 (k=16)
-             -> conv2 (5^3) -> bn2 -> ReLU -> local_attn2 (k=32) -> conv3 (1^3, bias)
+What the shipped model (neighbourhood ``"reference"``) computes per voxel::
 
-Submodule names match the reference checkpoint (SPEC §3) so its state dict loads as is.
+    input_bn -> linear 16->32 -> bn1 -> ReLU -> local_attn1 (k=16 nearest voxels, 4 heads)
+             -> linear 32->64 -> bn2 -> ReLU -> local_attn2 (k=32 nearest voxels, 8 heads)
+             -> linear 64->32 (+ bias)
+
+The only layers that mix voxels are the two attention layers; everything else is a
+per-voxel map.  Submodule names match the reference checkpoint (SPEC §3).
 
 Two neighbourhood modes (``NetConfig.neighbourhood``):
 
-* ``"reference"`` reproduces the reference checkpoint.  The reference feeds its sparse
-  convolutions voxel *positions in scene units* (grid index x voxel size, multiples of
-  8), so no kernel offset of reach 1 or 2 ever finds another voxel and only the centre
-  tap acts: both convolutions are per-voxel linear maps.  This mode computes exactly
-  that (:meth:`SubmanifoldConv3d.centre_tap`), independently of the voxel size.
-* ``"grid"`` gives the convolutions the true grid indices, so the 3^3 and 5^3 kernels
-  see real neighbours.
+* ``"reference"`` reproduces the reference checkpoint.  The reference was built as a sparse
+  3D CNN with 3^3 and 5^3 submanifold convolutions, but it fed them voxel *positions in
+  scene units* (grid index x voxel size, multiples of 8), so no kernel offset of reach 1
+  or 2 ever finds another voxel and only the centre tap acts: both "convolutions" are
+  per-voxel linear maps.  This mode builds them as such (:class:`PointwiseConv3d`, weight
+  ``(in, out)``) and keeps only those weights; the full reference-layout kernels
+  ``(27 | 125, in, out)`` of a checkpoint are reduced to their centre tap when it is
+  loaded (:mod:`.checkpoint`), which gives the same embeddings bit for bit.
+* ``"grid"`` gives submanifold convolutions (:class:`SubmanifoldConv3d`) the true grid
+  indices, so the 3^3 and 5^3 kernels see real neighbours.
 
 In both modes attention neighbourhoods are the Euclidean k-NN of the voxel positions
 ``voxel_index * voxel_size``.  A uniform scale does not change distance order, so the
@@ -47,11 +54,13 @@ class NetConfig(BaseModel):
     in_features: int = Field(16, ge=1, description="input features per voxel")
     embed_dim: int = Field(32, ge=1, description="output embedding width")
     widths: tuple[int, int] = Field((32, 64), description="channels after conv1 and conv2")
-    kernel_sizes: tuple[int, int] = Field((3, 5), description="cube side of conv1 and conv2 (odd)")
+    kernel_sizes: tuple[int, int] = Field((3, 5), description="cube side of conv1 and conv2 (odd); 'grid' only, "
+                                          "'reference' keeps the centre tap")
     attention_k: tuple[int, int] = Field((16, 32), description="neighbours (self included) of local_attn1/2")
     heads: tuple[int, int] = Field((4, 8), description="attention heads of local_attn1/2")
     neighbourhood: Literal["reference", "grid"] = Field(
-        "reference", description="'reference': centre-tap convolutions as the reference computes; 'grid': true grid neighbours"
+        "reference", description="'reference': per-voxel linear layers where the reference's convolutions only ever used "
+        "their centre tap; 'grid': 3^3 / 5^3 submanifold convolutions over true grid neighbours"
     )
 
     @model_validator(mode="after")
@@ -67,7 +76,7 @@ class NetConfig(BaseModel):
 
 
 class ShadowCorrNet(nn.Module):
-    """Per-voxel 32-dim embeddings from the 16 ShadowCorr voxel features.
+    """Per-voxel 32-dim embeddings from the 16 ShadowCorr voxel features (see the module docstring).
 
     Inputs are ragged batches: the voxels of all scenes concatenated, with ``batch``
     giving each voxel's scene.  Scenes never exchange information (convolution and
@@ -81,10 +90,14 @@ class ShadowCorrNet(nn.Module):
         (w1, w2), (s1, s2) = config.widths, config.kernel_sizes
         (k1, k2), (h1, h2) = config.attention_k, config.heads
         self.input_bn = nn.BatchNorm1d(config.in_features)
-        self.conv1 = SubmanifoldConv3d(config.in_features, w1, s1, bias=False)
+        if config.neighbourhood == "reference":  # the centre tap is all that acts: a per-voxel linear map
+            self.conv1: PointwiseConv3d | SubmanifoldConv3d = PointwiseConv3d(config.in_features, w1, bias=False)
+            self.conv2: PointwiseConv3d | SubmanifoldConv3d = PointwiseConv3d(w1, w2, bias=False)
+        else:
+            self.conv1 = SubmanifoldConv3d(config.in_features, w1, s1, bias=False)
+            self.conv2 = SubmanifoldConv3d(w1, w2, s2, bias=False)
         self.bn1 = nn.BatchNorm1d(w1)
         self.local_attn1 = LocalAttention(w1, h1, k1)
-        self.conv2 = SubmanifoldConv3d(w1, w2, s2, bias=False)
         self.bn2 = nn.BatchNorm1d(w2)
         self.local_attn2 = LocalAttention(w2, h2, k2)
         self.conv3 = PointwiseConv3d(w2, config.embed_dim, bias=True)
@@ -140,8 +153,8 @@ class ShadowCorrNet(nn.Module):
         x = self.local_attn2(x, neighbours=knn, valid=valid)
         return self.conv3(x)
 
-    def _conv(self, conv: SubmanifoldConv3d, x: torch.Tensor, voxel_index: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
-        if self.config.neighbourhood == "reference":
-            # What the reference computes with positions spaced by 8 units (SPEC §3).
-            return conv.centre_tap(x)
+    def _conv(self, conv: PointwiseConv3d | SubmanifoldConv3d, x: torch.Tensor, voxel_index: torch.Tensor,
+              batch: torch.Tensor) -> torch.Tensor:
+        if isinstance(conv, PointwiseConv3d):  # 'reference': what the reference computes (SPEC §3)
+            return conv(x)
         return conv(x, voxel_index, batch, neighbour_index(voxel_index, batch, conv.offsets))

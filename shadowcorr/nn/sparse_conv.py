@@ -249,16 +249,6 @@ class SubmanifoldConv3d(nn.Module):
             f"bias={self.bias is not None}"
         )
 
-    def centre_tap(self, features: torch.Tensor) -> torch.Tensor:
-        """The convolution when no voxel has a neighbour: a per-voxel linear map.
-
-        This is exactly what the reference network computes (SPEC §3): it feeds the
-        convolution positions in scene units, spaced by the voxel size (8), so no
-        offset of reach <= 2 ever hits another voxel and only the centre tap acts.
-        """
-        out = features @ self.kernel[self.centre]
-        return out + self.bias if self.bias is not None else out
-
     def forward(
         self,
         features: torch.Tensor,

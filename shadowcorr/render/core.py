@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from ..bundle import SceneBundle, unit_scale
 from ..config import ShadowCorrConfig
 from ..result import Result
-from ..segments import Segments, extract_segments
+from ..stages import Segments, extract_segments
 from ._draw import Box
 from .maps import MapScene, UpAxis, choose_frame, render_maps
 from .palette import CORRECT, SPLIT, UNKNOWN, WRONG, object_colours

@@ -1,7 +1,7 @@
 """Per-view images: shaded depth, segment masks filled in a colour, outlines and id labels.
 
 The pixels of a segment are found exactly as the engine cut them
-(``shadowcorr.segments.find_blobs``: 8-connected blobs per instance value, largest
+(``shadowcorr.stages.find_blobs``: 8-connected blobs per instance value, largest
 component first, blobs under ``min_blob_pixels`` ignored), so a result's
 ``(view, instance, component)`` names one blob of the mask and nothing else.
 """
@@ -14,7 +14,7 @@ from scipy import ndimage
 
 from ..bundle import View
 from ..config import ShadowCorrConfig
-from ..segments import find_blobs
+from ..stages import find_blobs
 from ._draw import CORNERS, Box, Label, banner, banner_box, draw_labels, font, hazard_stripes, label_box_size
 from .palette import RGB, WARNING_STRIPES
 

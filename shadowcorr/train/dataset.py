@@ -3,7 +3,7 @@
 Preparing a scene (segments, shadows, consensus voxels, segment-id embeddings) costs
 seconds; the network step costs a fraction of that.  So every bundle is prepared exactly
 once with :func:`shadowcorr.pipeline.prepare` - the same code path as inference - and
-stored together with its per-voxel training target (:func:`shadowcorr.assignment.voxel_truth`,
+stored together with its per-voxel training target (:func:`shadowcorr.evaluation.voxel_truth`,
 the object whose segments give the voxel the most confidence).  Later runs and epochs
 read the cache.
 
@@ -32,7 +32,7 @@ from typing import Sequence
 import numpy as np
 
 from ..config import ShadowCorrConfig
-from ..voxel_scene import VoxelScene
+from ..stages import VoxelScene
 
 __all__ = ["TrainScene", "find_bundles", "cache_key", "save_scene", "load_scene", "prepare_scenes", "default_cache_dir"]
 
@@ -145,7 +145,7 @@ def load_scene(path: str | Path) -> TrainScene:
 
 def _prepare_one(job: tuple[str, str, str]) -> tuple[str, float, str | None]:
     """Worker: prepare one bundle and write its cache file; returns (path, seconds, error)."""
-    from ..assignment import voxel_truth
+    from ..evaluation import voxel_truth
     from ..io import load_bundle
     from ..pipeline import prepare
 

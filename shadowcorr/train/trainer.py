@@ -2,8 +2,8 @@
 
 Recipe (SPEC §2, Training): Adam, lr 5e-5, one scene per step (``batch_scenes``),
 loss = discriminative + prototypical + graph (:mod:`.losses`), per-voxel target =
-:func:`shadowcorr.assignment.voxel_truth`.  After every epoch the network is validated
-through the real inference path - :func:`shadowcorr.assignment.assign` (MeanShift, small
+:func:`shadowcorr.evaluation.voxel_truth`.  After every epoch the network is validated
+through the real inference path - :func:`shadowcorr.pipeline.assign` (MeanShift, small
 cluster merge, majority vote) - and the epoch with the best mean validation voxel ARI
 (ties: average purity) is kept.
 
@@ -24,7 +24,6 @@ the network has no other randomness after its seeded initialisation.
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 import os
@@ -38,13 +37,14 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from .._version import __version__
-from ..assignment import assign
 from ..config import ShadowCorrConfig
-from ..metrics import summarize
-from ..nn import ModelCard, NetConfig, ShadowCorrNet, load_model, save_model
+from ..evaluation import summarize
+from ..pipeline import assign
+from ..nn import ModelCard, NetConfig, ShadowCorrNet, save_model
 from ..nn.checkpoint import REFERENCE_FEATURES
 from .dataset import TrainScene, find_bundles, prepare_scenes, training_pipeline
 from .losses import LossConfig, graph_neighbours, multi_objective_loss
+from .model_files import init_from_model
 
 __all__ = ["TrainConfig", "Trainer", "train", "evaluate_scenes", "init_from_model", "CHECKPOINT_FORMAT"]
 
@@ -98,33 +98,6 @@ def resolve_device(spec: str) -> torch.device:
     if spec == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(spec)
-
-
-def init_from_model(net: ShadowCorrNet, path: str | Path) -> dict[str, Any]:
-    """Copy the weights of a model file into ``net``; returns a provenance record.
-
-    The architecture must match apart from the neighbourhood mode.  Starting a "grid"
-    network from a "reference" model, the non-centre kernel taps are zeroed: in the
-    reference they never acted (SPEC §3), so they hold untrained values, and with zeros
-    the grid network starts out computing exactly the reference's function.
-    """
-    src = load_model(path)
-    a, b = src.card.architecture, net.config
-    if a.model_copy(update={"neighbourhood": b.neighbourhood}) != b:
-        raise ValueError(f"--init {path}: architecture {a!r} does not fit {b!r}")
-    state = {k: v.clone() for k, v in src.net.state_dict().items()}
-    zeroed = []
-    if a.neighbourhood == "reference" and b.neighbourhood == "grid":
-        for name in ("conv1", "conv2"):
-            conv = getattr(net, name)
-            kern = state[f"{name}.kernel"]
-            centre = kern[conv.centre].clone()
-            kern.zero_()
-            kern[conv.centre] = centre
-            zeroed.append(name)
-    net.load_state_dict(state, strict=True)
-    return {"path": str(path), "name": src.name, "version": src.version, "sha256": src.sha256,
-            "neighbourhood": a.neighbourhood, "zeroed_off_centre_taps": zeroed}  # fmt: skip
 
 
 # --------------------------------------------------------------------------- evaluation
@@ -270,7 +243,7 @@ class Trainer:
                 "graph": {"weight": cfg.loss.w_graph, "k": cfg.loss.graph_k, "scale": cfg.loss.graph_scale,
                           "form": "-log sigmoid(scale * cos) on same-instance k-NN edges"},
             },  # fmt: skip
-            "target": "per-voxel object with the highest summed segment confidence (assignment.voxel_truth)",
+            "target": "per-voxel object with the highest summed segment confidence (evaluation.voxel_truth)",
             "optimizer": "Adam",
             "lr": cfg.lr,
             "batch": f"{cfg.batch_scenes} scene(s) per step",
@@ -493,30 +466,3 @@ class Trainer:
 def train(cfg: TrainConfig, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
     """Run a training job; see :class:`Trainer`."""
     return Trainer(cfg, resume=resume, progress=progress).run()
-
-
-def copy_with_card_update(src: str | Path, dst: str | Path, *, metrics: dict[str, Any] | None = None,
-                          training: dict[str, Any] | None = None, notes: str | None = None,
-                          name: str | None = None, version: str | None = None, license: str | None = None,
-                          license_file: str | Path | None = None) -> str:
-    """Re-export a model file with its card amended (e.g. real-scene figures measured afterwards).
-
-    The weights are copied unchanged; ``metrics`` and ``training`` are merged into the
-    card's dicts.  ``license_file``'s text is stored under the metadata key
-    ``"license_text"`` (weights fine-tuned from the reference keep its MIT notice).
-    Returns the new file's sha256.
-    """
-    m = load_model(src)
-    card = copy.deepcopy(m.card)
-    card.metrics = {**card.metrics, **(metrics or {})}
-    card.training = {**card.training, **(training or {})}
-    if notes is not None:
-        card.notes = notes
-    if name is not None:
-        card.name = name
-    if version is not None:
-        card.version = version
-    if license is not None:
-        card.license = license
-    extra = {"license_text": Path(license_file).read_text()} if license_file is not None else None
-    return save_model(m.net, ModelCard.model_validate(card.model_dump()), dst, extra_metadata=extra)

@@ -1,26 +1,33 @@
-"""Run a real service process for tests and benchmarks (``python -m service`` on a free port).
+"""The one test harness of the tests and the benchmarks: a real service process, free ports, zip bytes.
 
-Only the standard library and httpx at import time; ``psutil`` (a dev dependency) is
-imported when worker processes are looked up.
+:class:`ServerProcess` runs ``python -m service`` on a free loopback port in its own
+process group.  Only the standard library and httpx at import time; ``psutil`` (a dev
+dependency) is imported when worker processes are looked up.  The benchmarks import this
+module as ``tests.harness`` (they put the repository root on ``sys.path``).
 """
 
 from __future__ import annotations
 
+import io
+import json
 import os
+import re
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
 import time
+import zipfile
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import httpx
 
-__all__ = ["ServerProcess", "free_port", "REPO_ROOT"]
+__all__ = ["ServerProcess", "free_port", "REPO_ROOT", "add_zeros_member", "zip_files", "zipped_bundle"]
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+MiB = 1024 * 1024
 
 
 def free_port() -> int:
@@ -35,7 +42,9 @@ class ServerProcess:
 
     ``args`` are extra command-line flags (``["--workers", "2"]``); ``env`` adds
     environment variables.  ``SHADOWCORR_*`` variables of the calling environment are
-    dropped, so the server runs with exactly the settings given here.
+    dropped, so the server runs with exactly the settings given here.  ``token`` goes into
+    :attr:`headers`; with ``auth`` the server is also started requiring it.  ``start()`` is
+    ``launch()`` then ``wait_ready()``: launch several servers first to start them at once.
     """
 
     def __init__(
@@ -46,6 +55,7 @@ class ServerProcess:
         python: str | None = None,
         log_path: str | Path | None = None,
         token: str | None = None,
+        auth: bool = False,
     ) -> None:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -54,6 +64,8 @@ class ServerProcess:
         self.env.update(env or {})
         self.python = python or sys.executable
         self.token = token
+        if auth and token:
+            self.env["SHADOWCORR_AUTH_TOKEN"] = token
         if log_path is None:
             fd, name = tempfile.mkstemp(prefix="shadowcorr-service-", suffix=".log")
             os.close(fd)
@@ -71,10 +83,19 @@ class ServerProcess:
         return {"Authorization": f"Bearer {self.token}"} if self.token else {}
 
     def start(self, timeout: float = 300.0) -> "ServerProcess":
+        self.launch()
+        return self.wait_ready(timeout)
+
+    def launch(self) -> None:
+        """Start the process (in a session of its own, so that ``stop`` can end its workers too)."""
         cmd = [self.python, "-m", "service", "--host", "127.0.0.1", "--port", str(self.port), *self.args]
-        log = open(self.log_path, "wb")
-        self.proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=self.env, stdout=log, stderr=subprocess.STDOUT)
-        log.close()
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=self.env, stdout=log, stderr=subprocess.STDOUT,
+                                         start_new_session=True)
+
+    def wait_ready(self, timeout: float = 300.0) -> "ServerProcess":
+        """Wait until ``/health`` is 200; the log's tail in the error when the server exits or times out."""
+        assert self.proc is not None, "not launched"
         deadline = time.monotonic() + timeout
         with httpx.Client(timeout=5.0) as client:
             while time.monotonic() < deadline:
@@ -88,6 +109,20 @@ class ServerProcess:
                 time.sleep(0.25)
         self.stop()
         raise TimeoutError(f"server not ready after {timeout:.0f} s:\n{self.log_tail()}")
+
+    def requests(self, route: str = "/correspond") -> dict[str, int]:
+        """Requests served so far on ``route``, by status code (from ``/metrics``)."""
+        text = httpx.get(self.url + "/metrics", headers=self.headers, timeout=10).text
+        counts: dict[str, int] = {}
+        pattern = re.compile(r'^shadowcorr_http_requests_total\{(.*)\} ([0-9.e+]+)$')
+        for line in text.splitlines():
+            m = pattern.match(line)
+            if not m:
+                continue
+            labels = dict(re.findall(r'(\w+)="([^"]*)"', m.group(1)))
+            if labels.get("route") == route:
+                counts[labels["status"]] = counts.get(labels["status"], 0) + int(float(m.group(2)))
+        return counts
 
     def log_tail(self, n: int = 60) -> str:
         try:
@@ -111,7 +146,7 @@ class ServerProcess:
         return out
 
     def stop(self, timeout: float = 60.0) -> int | None:
-        """SIGTERM (graceful), then SIGKILL after ``timeout``; returns the exit code."""
+        """SIGTERM (graceful), then SIGKILL after ``timeout``, and of any process left in its group; the exit code."""
         if self.proc is None:
             return None
         if self.proc.poll() is None:
@@ -121,6 +156,10 @@ class ServerProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(10)
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)  # its own group: leftover workers, if any
+        except (ProcessLookupError, PermissionError):
+            pass
         return self.proc.returncode
 
     def __enter__(self) -> "ServerProcess":
@@ -128,3 +167,31 @@ class ServerProcess:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def zip_files(files: Mapping[str, bytes], compression: int = zipfile.ZIP_DEFLATED) -> bytes:
+    """The bytes of a zip archive holding ``files`` (name -> content)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=compression) as zf:
+        for name, data in files.items():
+            zf.writestr(name, data)
+    return buf.getvalue()
+
+
+def add_zeros_member(zipped: bytes, mib: int, name: str = "extra/padding.bin") -> bytes:
+    """``zipped`` with one more member of ``mib`` MiB of zeros (deflated about 1000:1), written in 1 MiB pieces."""
+    buf = io.BytesIO(zipped)
+    with zipfile.ZipFile(buf, "a", zipfile.ZIP_DEFLATED) as zf:
+        with zf.open(name, "w", force_zip64=True) as member:
+            zero = bytes(MiB)
+            for _ in range(mib):
+                member.write(zero)
+    return buf.getvalue()
+
+
+def zipped_bundle(bundle: Any) -> tuple[bytes, dict, dict[str, bytes]]:
+    """A :class:`~shadowcorr.bundle.SceneBundle` as an uploadable zip: (zip bytes, manifest, files)."""
+    from shadowcorr.io import bundle_to_parts
+
+    manifest, files = bundle_to_parts(bundle)
+    return zip_files({"manifest.json": json.dumps(manifest).encode(), **files}), manifest, files

@@ -1,4 +1,4 @@
-"""Clustering of voxel embeddings into objects (SPEC §2 steps 11-12).
+"""Stage 9 (methods ``shadowcorr``, ``meanshift``): clustering of voxel embeddings into objects (SPEC §2 steps 11-12).
 
 Three pieces, all vectorised:
 
@@ -8,6 +8,7 @@ Three pieces, all vectorised:
   modes, same labels up to floating-point ties) at a fraction of its run time.
 * :func:`merge_small_clusters` - folds clusters with too few points into the
   nearest large cluster.
+* :func:`cluster_voxels` - the two above, as the pipeline runs them.
 * :func:`majority_vote` - turns per-point (per-voxel) labels into one label per
   group (per segment), with the share of votes it got.
 
@@ -19,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["mean_shift", "merge_small_clusters", "majority_vote"]
+__all__ = ["cluster_voxels", "mean_shift", "merge_small_clusters", "majority_vote"]
 
 # Upper bound on the number of entries of one (seeds x points) block.  Distance
 # matrices are built block by block so that memory stays bounded (about 32 MiB in
@@ -463,3 +464,11 @@ def majority_vote(
     group_label[g] = pair_label[win]
     support[g] = votes[win] / totals[g]
     return group_label, support
+
+
+def cluster_voxels(embeddings: np.ndarray, bandwidth: float, min_cluster_size: int) -> np.ndarray:
+    """MeanShift + small-cluster merge; returns one cluster label per voxel."""
+    if embeddings.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    labels, _ = mean_shift(np.ascontiguousarray(embeddings, dtype=np.float32), bandwidth)
+    return merge_small_clusters(embeddings, labels, min_size=min_cluster_size)

@@ -1,4 +1,4 @@
-"""Stage 2b: segments -> cross-view surface evidence (where each segment lands in the other views).
+"""Stage 3: segments -> cross-view surface evidence (where each segment lands in the other views).
 
 A segment is a piece of surface seen from one view.  Projected into another view, each of
 its points either cannot be checked there - outside the image, behind the camera, hidden
@@ -31,10 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bundle import SceneBundle, unit_scale
-from .config import ShadowCorrConfig
-from .segments import Segments
-from .shadows import segment_max
+from ..bundle import SceneBundle, unit_scale
+from ..config import ShadowCorrConfig
+from ..ops import segment_max
+from ._02_segments import Segments
 
 
 @dataclass

@@ -1,4 +1,7 @@
-"""Step 0 (optional): refine the declared camera poses from the scene itself.
+"""Stage 1 (optional): refine the declared camera poses from the scene itself.
+
+(Over 500 lines for now: one algorithm - clouds, pairwise registration, pose graph, bounds - whose
+steps share private types; splitting registration from the pose graph is the next step.)
 
 Odometry and SLAM poses are off by a fraction of a degree to a few degrees; at 7-10 m
 range, 2 degrees moves points by 24-35 cm and whole views stop overlapping in the
@@ -63,10 +66,10 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
-from .bundle import SceneBundle, View, unit_scale
-from .config import ShadowCorrConfig
-from .result import ViewPoseCorrection
-from .segments import back_project
+from ..bundle import SceneBundle, View, unit_scale
+from ..config import ShadowCorrConfig
+from ..result import ViewPoseCorrection
+from ._02_segments import back_project
 
 #: Pixels sampled per view (a regular grid; about 1 in 100 of a 1080p image).
 _SAMPLED_PIXELS = 20_000

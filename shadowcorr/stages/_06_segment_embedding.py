@@ -1,4 +1,4 @@
-"""Stage 3a: segment-id embeddings learned per scene from voxel co-occurrence (SPEC §2 step 8).
+"""Stage 6, step 8: segment-id embeddings learned per scene from voxel co-occurrence (SPEC §2 step 8).
 
 Two segments of one object share many shadow voxels; two of different objects share
 few.  Each scene learns one small vector per segment so that segments which
@@ -32,7 +32,7 @@ import torch
 from scipy.sparse import csr_matrix, issparse
 from scipy.sparse.csgraph import connected_components
 
-from .config import ShadowCorrConfig
+from ..config import ShadowCorrConfig
 
 _ADAM_BETA1, _ADAM_BETA2, _ADAM_EPS = 0.9, 0.999, 1e-8
 

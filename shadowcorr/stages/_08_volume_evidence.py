@@ -1,4 +1,4 @@
-"""Stage 3b: network embeddings -> volumetric evidence between segments (method ``fused``).
+"""Stage 8: network embeddings -> volumetric evidence between segments (method ``fused``).
 
 Two segments whose shadows share consensus voxels may be one object (their shadows meet
 inside it) or two touching ones; the network, which sees the overlap patterns of the whole
@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import coo_matrix, triu
 
-from .config import ShadowCorrConfig
-from .voxel_scene import VoxelScene
+from ..config import ShadowCorrConfig
+from ._06_voxel_scene import VoxelScene
 
 
 def segment_embeddings(scene: VoxelScene, embeddings: np.ndarray) -> np.ndarray:

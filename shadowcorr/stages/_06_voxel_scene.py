@@ -1,4 +1,4 @@
-"""Stage 3: shadows of all segments -> one voxel scene with network inputs (SPEC §2 steps 7-9).
+"""Stage 6: shadows of all segments -> one voxel scene with network inputs (SPEC §2 steps 7-9).
 
 Every voxel of the shared grid keeps the set of segments whose shadows reach it and
 the summed confidence gamma.  Voxels below the ``gamma_percentile``-th percentile of
@@ -18,14 +18,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .config import ShadowCorrConfig
-from .result import ViewPoseCorrection
-from .errors import SceneLimitError
-from .grid_keys import pack_cell_keys, unique_keys
-from .segment_embedding import cooccurrence, train_segment_embeddings, voxel_embeddings
-from .segments import Segments
-from .shadows import SegmentShells, ShadowVoxels, segment_max, segment_min
-from .surface_evidence import SurfaceEvidence
+from ..config import ShadowCorrConfig
+from ..errors import SceneLimitError
+from ..ops import pack_cell_keys, segment_max, segment_min, unique_keys
+from ..result import ViewPoseCorrection
+from ._02_segments import Segments
+from ._03_surface_evidence import SurfaceEvidence
+from ._04_shells import SegmentShells
+from ._05_shadows import ShadowVoxels
+from ._06_segment_embedding import cooccurrence, train_segment_embeddings, voxel_embeddings
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Stage 4: evidence between segments -> groups of segments, one group per physical object.
+"""Stage 9 (methods ``fused``, ``projection``): evidence between segments -> groups of segments, one group per physical object.
 
 Two ways to resolve the evidence, one per method:
 
@@ -47,8 +47,10 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .config import ShadowCorrConfig
-from .surface_evidence import SurfaceEvidence
+from ..config import ShadowCorrConfig
+from ._03_surface_evidence import SurfaceEvidence
+from ._06_voxel_scene import VoxelScene
+from ._08_volume_evidence import volume_pairs
 
 
 @dataclass
@@ -361,3 +363,29 @@ def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndar
     joined = np.bincount(comp, minlength=comp.max() + 1)[comp] > 1
     out[joined] = smallest[comp[joined]]
     return out
+
+
+def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: ShadowCorrConfig
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Group label and confidence of every segment from the evidence between segments.
+
+    ``projection`` links segments by cross-view landings alone; ``fused`` adds the network's
+    volumetric evidence (``embeddings``) and resolves both by signed average linkage.
+    """
+    if scene.surface is None:
+        raise ValueError(f"method {config.method!r} needs a scene prepared with method {config.method!r} "
+                         "(its cross-view surface evidence is missing)")
+    s = scene.num_segments
+    none = np.zeros(0, dtype=np.int64)
+    volume = (none, none, np.zeros(0), np.zeros(0))
+    if config.method == "fused":
+        volume = volume_pairs(scene, embeddings, config)
+    instance = scene.segment_instance
+    if config.method == "fused":
+        instance = split_mask_ids(scene.surface, scene.segment_view, instance, config)
+    graph = SegmentGraph(scene.segment_view, instance, scene.surface, *volume)
+    if config.method == "projection":
+        labels = link_components(scene.surface, scene.segment_view, config)
+    else:
+        labels = agglomerate(graph, config)
+    return labels[:s], segment_confidence(graph, labels, config)

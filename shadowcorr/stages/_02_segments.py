@@ -1,4 +1,4 @@
-"""Stage 1: scene bundle -> segments (partial 3D surface shells, one per mask blob).
+"""Stage 2: scene bundle -> segments (partial 3D surface shells, one per mask blob).
 
 Each view's instance mask is cut into blobs: every instance value is split into its
 8-connected components (``split_components``), blobs smaller than ``min_blob_pixels``
@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .bundle import SceneBundle, View, unit_scale
-from .config import ShadowCorrConfig
-from .errors import DepthRangeError
+from ..bundle import SceneBundle, View, unit_scale
+from ..config import ShadowCorrConfig
+from ..errors import DepthRangeError
 
 _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 

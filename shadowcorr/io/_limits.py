@@ -1,0 +1,28 @@
+"""Resource limits applied while loading one bundle, and the manifest's file name."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+MiB = 1024 * 1024
+MANIFEST_NAME = "manifest.json"
+
+
+class BundleLimits(BaseModel):
+    """Resource limits applied while loading one bundle (defaults suit the HTTP service)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    max_views: int = Field(16, ge=1)
+    max_pixels_per_view: int = Field(4096 * 4096, ge=1)
+    max_total_bytes: int = Field(512 * MiB, ge=1, description="uncompressed bytes of all files together")
+    max_files: int = Field(64, ge=1, description="regular files in an archive / parts in an upload")
+    max_manifest_bytes: int = Field(1 * MiB, ge=1)
+    max_compression_ratio: float = Field(
+        200.0, gt=1, description="uncompressed / compressed archive bytes; zip bombs reach ~1000"
+    )
+    ratio_check_min_bytes: int = Field(
+        32 * MiB, ge=0, description="archives expanding to less than this are not ratio-checked (harmless)"
+    )
+    max_segments: int = Field(100_000, ge=1, description="point-segment bundles: number of segments")
+    max_segment_points: int = Field(20_000_000, ge=1, description="point-segment bundles: total points")

@@ -1,0 +1,22 @@
+"""Array operations the stages share, one op per module, on ragged batches of segments.
+
+Every stage holds all segments of a scene in flat arrays sorted by segment index, with
+the number of segments given explicitly (segments may be empty):
+
+- :func:`pack_cell_keys`, :func:`unique_keys` - (segment, voxel cell) pairs packed into one
+  sortable int64 key, and their unique values;
+- :func:`segment_max`, :func:`segment_min`, :func:`segment_range` - per-segment reductions;
+- :func:`separation_gap`, :func:`separated` - segments moved apart so that one k-d tree
+  answers per-segment neighbour queries.
+"""
+
+from __future__ import annotations
+
+from ._grid_keys import pack_cell_keys, unique_keys
+from ._segment_reduce import segment_max, segment_min, segment_range, segment_starts
+from ._segment_separation import separated, separation_gap
+
+__all__ = [
+    "pack_cell_keys", "segment_max", "segment_min", "segment_range", "segment_starts", "separated",
+    "separation_gap", "unique_keys",
+]

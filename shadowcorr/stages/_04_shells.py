@@ -1,0 +1,121 @@
+"""Stage 4: segments -> cleaned segment shells and their geometry (SPEC §2 steps 1-3).
+
+A segment's back-projected points are the visible shell of an object.  Before a shadow
+is cast from it (stage 5) the shell is cleaned and measured, for all segments at once:
+points are averaged per ``downsample_size`` grid cell, statistical outliers are removed
+(mean k-NN distance beyond mean + ratio * std of the segment, as Open3D does), and the
+error ellipsoid (``ellipsoid_scale`` * sqrt of the covariance eigenvalues) and the viewing
+direction (camera centre -> centroid, or the optical axis) are computed per segment.
+
+Nearest neighbours within a segment come from one k-d tree in which segments are moved
+far apart (``ops.separated``; pykdtree: exact k-NN, about 1.5x faster than scipy's cKDTree here).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from ..config import ShadowCorrConfig
+from ..ops import pack_cell_keys, separated, separation_gap
+from ._02_segments import Segments
+
+
+@dataclass
+class SegmentShells:
+    """Cleaned surface points per segment and their error-ellipsoid geometry (steps 1-3)."""
+
+    points: np.ndarray  # (P, 3) downsampled, outliers removed
+    segment: np.ndarray  # (P,) segment index of each point, sorted
+    count: np.ndarray  # (S,) points per segment (0 = empty)
+    mean: np.ndarray  # (S, 3)
+    axis_lengths: np.ndarray  # (S, 3) l1 >= l2 >= l3
+    direction: np.ndarray  # (S, 3) unit viewing direction
+
+
+def voxel_downsample(points: np.ndarray, segment: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Average the points of each segment that fall in one ``cell``-sized grid cell."""
+    if points.shape[0] == 0:
+        return points.reshape(0, 3), segment[:0]
+    cells = np.floor(points / cell).astype(np.int64)
+    key, _ = pack_cell_keys(segment, cells)
+    order = np.argsort(key)  # grouping needs no stable order, and quicksort is ~4x faster here
+    key = key[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    counts = np.diff(np.r_[starts, key.size])
+    sums = np.add.reduceat(points[order], starts, axis=0) if key.size else np.zeros((0, 3))
+    return sums / counts[:, None], segment[order][starts]
+
+
+def remove_statistical_outliers(
+    points: np.ndarray, segment: np.ndarray, num_segments: int, config: ShadowCorrConfig
+) -> np.ndarray:
+    """Boolean keep-mask: drop points whose mean k-NN distance exceeds mean + ratio*std of their segment.
+
+    Only segments with more than ``outlier_min_points`` points are filtered;
+    k = clamp(n // 10, 2, outlier_max_neighbours), counting the point itself as its
+    own nearest neighbour at distance 0 (as Open3D does).
+    """
+    keep = np.ones(points.shape[0], dtype=bool)
+    count = np.bincount(segment, minlength=num_segments)
+    k_seg = np.clip(count // 10, 2, config.outlier_max_neighbours)
+    filtered = (count > config.outlier_min_points)[segment]
+    if not filtered.any():
+        return keep
+    pts, seg = points[filtered], segment[filtered]
+    k_max = int(k_seg[np.unique(seg)].max())
+    moved = separated(pts, seg, separation_gap(pts))
+    dist, _ = KDTree(moved).query(moved, k=k_max)
+    dist = dist.reshape(len(pts), k_max)
+    k_pt = k_seg[seg]
+    upto = np.arange(k_max)[None, :] < k_pt[:, None]
+    mean_d = (dist * upto).sum(axis=1) / k_pt
+    n = np.bincount(seg, minlength=num_segments)
+    mu = np.bincount(seg, weights=mean_d, minlength=num_segments) / np.maximum(n, 1)
+    var = np.bincount(seg, weights=(mean_d - mu[seg]) ** 2, minlength=num_segments) / np.maximum(n - 1, 1)
+    limit = mu + config.outlier_std_ratio * np.sqrt(var)
+    keep[np.flatnonzero(filtered)] = mean_d <= limit[seg]
+    return keep
+
+
+def segment_shells(segments: Segments, config: ShadowCorrConfig) -> SegmentShells:
+    """Steps 1-3: downsample, remove outliers, error ellipsoid, viewing direction."""
+    s = segments.num_segments
+    pts, seg = voxel_downsample(segments.points, segments.segment_index, config.downsample_size)
+    keep = remove_statistical_outliers(pts, seg, s, config)
+    pts, seg = pts[keep], seg[keep]
+
+    count = np.bincount(seg, minlength=s)
+    safe = np.maximum(count, 1)[:, None]
+    mean = np.stack([np.bincount(seg, weights=pts[:, i], minlength=s) for i in range(3)], axis=1) / safe
+    centred = pts - mean[seg]
+    outer = centred[:, :, None] * centred[:, None, :]
+    cov = np.stack(
+        [np.bincount(seg, weights=outer[:, i, j], minlength=s) for i in range(3) for j in range(3)], axis=1
+    ).reshape(s, 3, 3) / np.maximum(count - 1, 1)[:, None, None]
+    eigval = np.clip(np.linalg.eigvalsh(cov)[:, ::-1], 0.0, None)
+    axis_lengths = config.ellipsoid_scale * np.sqrt(eigval)
+
+    if config.view_direction == "centroid":
+        direction = mean - segments.camera_center
+    else:
+        direction = segments.optical_axis.copy()
+    norm = np.linalg.norm(direction, axis=1, keepdims=True)
+    direction = np.where(norm > 0, direction / np.maximum(norm, 1e-12), segments.optical_axis)
+    return SegmentShells(pts, seg, count, mean, axis_lengths, direction)
+
+
+def raw_shells(segments: Segments) -> SegmentShells:
+    """Shells without clean-up or geometry: the back-projected points and their means only.
+
+    For methods that cast no shadows (``projection``), which still report centroids and boxes.
+    """
+    s = segments.num_segments
+    seg = segments.segment_index
+    count = segments.lengths.astype(np.int64)
+    safe = np.maximum(count, 1)[:, None]
+    mean = np.stack([np.bincount(seg, weights=segments.points[:, i], minlength=s) for i in range(3)], axis=1) / safe
+    zeros = np.zeros((s, 3))
+    return SegmentShells(segments.points, seg, count, mean, zeros, zeros)

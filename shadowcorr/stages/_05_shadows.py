@@ -1,0 +1,114 @@
+"""Stage 5: segment shells -> per-segment confidence-weighted shadow voxels (SPEC §2 steps 4-6).
+
+A segment is only the visible shell of an object (stage 4 cleans it up).  Behind that shell lies the
+object's interior, so every segment "casts a shadow": its points are pushed in
+layers along the viewing direction, deeper near the middle of the silhouette and
+not at all at its rim (silhouette-aware erosion), for a depth proportional to the
+segment's second error-ellipsoid axis.  The surface and layer points are voxelised,
+and each voxel gets a confidence that rises from the surface, peaks at about 30% of
+the shadow's depth and falls off towards its far end (a Beta(1.41, 1.94) profile).
+Segments of one object - even ones that share no visible surface - end up
+overlapping inside the object; that overlap is the signal the rest of the pipeline
+reads.
+
+All steps run on the ragged batch of all segments at once; grouping is done with
+packed integer keys and sorting, and nearest neighbours within a segment are found
+with one k-d tree in which segments are moved far apart (``ops.separated``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from ..config import ShadowCorrConfig
+from ..ops import pack_cell_keys, segment_max, segment_range, separated, separation_gap, unique_keys
+from ._02_segments import Segments
+from ._04_shells import SegmentShells
+
+
+@dataclass
+class ShadowVoxels:
+    """Per (segment, voxel) pairs with confidence (steps 5-6), sorted by segment."""
+
+    segment: np.ndarray  # (M,)
+    cell: np.ndarray  # (M, 3) int64 voxel index (centre = cell * voxel_size)
+    confidence: np.ndarray  # (M,) phi in (min_confidence, 1]
+
+    @classmethod
+    def empty(cls) -> "ShadowVoxels":
+        return cls(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros(0))
+
+
+def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrConfig) -> ShadowVoxels:
+    """Steps 4-6: silhouette-aware erosion layers, voxelisation, confidence per voxel."""
+    s = segments.num_segments
+    pts, seg, v = shells.points, shells.segment, config.voxel_size
+    if pts.shape[0] == 0:
+        return ShadowVoxels.empty()
+    direction = shells.direction
+    centred = pts - shells.mean[seg]
+
+    # In-plane principal axes: any orthonormal pair (e1, e2) orthogonal to the direction,
+    # rotated onto the eigenvectors of the projected 2x2 covariance.
+    ref = np.eye(3)[np.argmin(np.abs(direction), axis=1)]
+    e1 = np.cross(direction, ref)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(direction, e1)
+    p1 = np.einsum("pk,pk->p", centred, e1[seg])
+    p2 = np.einsum("pk,pk->p", centred, e2[seg])
+    c11 = np.bincount(seg, weights=p1 * p1, minlength=s)
+    c12 = np.bincount(seg, weights=p1 * p2, minlength=s)
+    c22 = np.bincount(seg, weights=p2 * p2, minlength=s)
+    angle = 0.5 * np.arctan2(2 * c12, c11 - c22)  # rotation onto the principal axes
+    cos_a, sin_a = np.cos(angle)[seg], np.sin(angle)[seg]
+    xi = cos_a * p1 + sin_a * p2
+    eta = -sin_a * p1 + cos_a * p2
+
+    # (u0, v0) is the projection of the mean, i.e. (0, 0) here; w, h the bounding box.
+    w, h = segment_range(xi, seg, s), segment_range(eta, seg, s)
+    rho = np.sqrt((2 * xi / np.maximum(w[seg], 1e-9)) ** 2 + (2 * eta / np.maximum(h[seg], 1e-9)) ** 2)
+    d_surf = config.projection_factor * shells.axis_lengths[:, 1]
+    n_max = np.maximum(np.floor(d_surf / v), 1).astype(np.int64)
+    layers = np.where(rho < 1, np.floor(n_max[seg] * (1 - rho)), 0).astype(np.int64)
+
+    # Surface points (layer 0) plus layer L = 1..n of each point, L*v along the direction,
+    # in voxel units (one layer = one voxel along the direction).  Each point fills the
+    # voxel it rounds to if it lies within `chebyshev_fraction` of its centre on every
+    # axis.  Axis by axis on flat arrays: about twice as fast as on (N, 3) blocks.
+    reps = layers + 1
+    src = np.repeat(np.arange(pts.shape[0]), reps)
+    level = np.arange(src.size) - np.repeat(np.cumsum(reps) - reps, reps)
+    all_seg = seg[src]
+    inside = np.ones(src.size, dtype=bool)
+    cell_axes = []
+    for axis in range(3):
+        coord = (pts[:, axis] / v)[src] + level * direction[:, axis][all_seg]
+        nearest = np.rint(coord)
+        inside &= np.abs(coord - nearest) <= config.chebyshev_fraction
+        cell_axes.append(nearest)
+    cell = np.stack([c[inside] for c in cell_axes], axis=1).astype(np.int64)
+    key, unpack = pack_cell_keys(all_seg[inside], cell)
+    vox_seg, vox_cell = unpack(unique_keys(key))
+
+    # Confidence: distance from the voxel centre to the segment's nearest surface point.
+    centres = vox_cell * v
+    gap = separation_gap(pts, centres)
+    dist, _ = KDTree(separated(pts, seg, gap)).query(separated(centres, vox_seg, gap), k=1)
+    max_d = segment_max(dist, vox_seg, s)
+    d_hat = dist / (config.distance_margin * np.maximum(max_d[vox_seg], 1e-12))
+    phi = beta_profile(d_hat, config.beta_alpha, config.beta_beta)
+    keep = phi > config.min_confidence
+    return ShadowVoxels(vox_seg[keep], vox_cell[keep], phi[keep])
+
+
+def beta_profile(x: np.ndarray, alpha: float, beta: float) -> np.ndarray:
+    """Beta(alpha, beta) density scaled so that its maximum, at the mode, is 1."""
+    mode = (alpha - 1) / (alpha + beta - 2)
+    x = np.clip(x, 0.0, 1.0)
+    log_ratio = (alpha - 1) * (np.log(np.maximum(x, 1e-300)) - np.log(mode)) + (beta - 1) * (
+        np.log(np.maximum(1 - x, 1e-300)) - np.log(1 - mode)
+    )
+    return np.where((x > 0) & (x < 1), np.exp(log_ratio), 0.0)

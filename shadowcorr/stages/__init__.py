@@ -1,0 +1,110 @@
+"""The pipeline's stages, one module per stage, numbered in the order they run.
+
+::
+
+    01 poses             SceneBundle -> SceneBundle with corrected poses   (optional: refine_poses)
+    02 segments          SceneBundle -> Segments: one 3D point shell per mask blob
+    03 surface_evidence  Segments -> SurfaceEvidence: where each segment lands in the other views
+    04 shells            Segments -> SegmentShells: cleaned points, error ellipsoid, viewing direction
+    05 shadows           SegmentShells -> ShadowVoxels: confidence-weighted voxels behind each shell
+    06 voxel_scene       ShadowVoxels -> VoxelScene: consensus voxels, segment-id embeddings, features
+    07 network           VoxelScene -> per-voxel embeddings (the model is in shadowcorr.nn)
+    08 volume_evidence   embeddings -> evidence between segments whose shadows meet
+    09 grouping          surface + volume evidence -> groups of segments   (fused, projection)
+    09 clustering        embeddings -> voxel clusters (MeanShift)          (shadowcorr, meanshift)
+    10 assignment        groups or clusters -> one object per segment, object summaries
+
+Stage 03 runs beside 04-06 (methods ``fused`` and ``projection``); the two stages 09 are
+alternatives, chosen by ``ShadowCorrConfig.method``.  :mod:`shadowcorr.pipeline` composes
+them.  Every stage works on a ragged batch: all segments (or voxels) of a scene in flat
+arrays with explicit lengths, never a Python loop per point.  No stage reads ground truth.
+
+The modules are private; the names below are what the stages offer.  They are imported
+lazily, so that importing one stage does not load torch.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_exports
+
+_EXPORTS = {
+    # 01 poses
+    "refine_poses": "_01_poses",
+    "pose_warnings": "_01_poses",
+    # 02 segments
+    "Segments": "_02_segments",
+    "Blobs": "_02_segments",
+    "find_blobs": "_02_segments",
+    "back_project": "_02_segments",
+    "extract_segments": "_02_segments",
+    "check_valid_depth": "_02_segments",
+    # 03 surface evidence
+    "SurfaceEvidence": "_03_surface_evidence",
+    "sample_segment_points": "_03_surface_evidence",
+    "surface_evidence": "_03_surface_evidence",
+    # 04 shells
+    "SegmentShells": "_04_shells",
+    "voxel_downsample": "_04_shells",
+    "remove_statistical_outliers": "_04_shells",
+    "segment_shells": "_04_shells",
+    "raw_shells": "_04_shells",
+    # 05 shadows
+    "ShadowVoxels": "_05_shadows",
+    "beta_profile": "_05_shadows",
+    "cast_shadows": "_05_shadows",
+    # 06 voxel scene
+    "VoxelScene": "_06_voxel_scene",
+    "build_voxel_scene": "_06_voxel_scene",
+    "cooccurrence": "_06_segment_embedding",
+    "segment_embedding_loss": "_06_segment_embedding",
+    "train_segment_embeddings": "_06_segment_embedding",
+    # 07 network
+    "baseline_embeddings": "_07_network",
+    "check_compatible": "_07_network",
+    "embed": "_07_network",
+    "model_info": "_07_network",
+    # 08 volume evidence
+    "segment_embeddings": "_08_volume_evidence",
+    "volume_pairs": "_08_volume_evidence",
+    # 09 grouping / clustering
+    "SegmentGraph": "_09_grouping",
+    "agglomerate": "_09_grouping",
+    "group_by_evidence": "_09_grouping",
+    "link_components": "_09_grouping",
+    "segment_confidence": "_09_grouping",
+    "split_mask_ids": "_09_grouping",
+    "cluster_voxels": "_09_clustering",
+    "majority_vote": "_09_clustering",
+    "mean_shift": "_09_clustering",
+    "merge_small_clusters": "_09_clustering",
+    # 10 assignment
+    "evidence_labels": "_10_assignment",
+    "number_objects": "_10_assignment",
+    "object_summaries": "_10_assignment",
+    "orphan_warnings": "_10_assignment",
+    "segment_labels": "_10_assignment",
+    "vote": "_10_assignment",
+}
+
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
+    from ._01_poses import pose_warnings, refine_poses
+    from ._02_segments import Blobs, Segments, back_project, check_valid_depth, extract_segments, find_blobs
+    from ._03_surface_evidence import SurfaceEvidence, sample_segment_points, surface_evidence
+    from ._04_shells import SegmentShells, raw_shells, remove_statistical_outliers, segment_shells, voxel_downsample
+    from ._05_shadows import ShadowVoxels, beta_profile, cast_shadows
+    from ._06_segment_embedding import cooccurrence, segment_embedding_loss, train_segment_embeddings
+    from ._06_voxel_scene import VoxelScene, build_voxel_scene
+    from ._07_network import baseline_embeddings, check_compatible, embed, model_info
+    from ._08_volume_evidence import segment_embeddings, volume_pairs
+    from ._09_clustering import cluster_voxels, majority_vote, mean_shift, merge_small_clusters
+    from ._09_grouping import (
+        SegmentGraph, agglomerate, group_by_evidence, link_components, segment_confidence, split_mask_ids,
+    )
+    from ._10_assignment import (
+        evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote,
+    )
