@@ -132,7 +132,7 @@ class ShadowCorrConfig(BaseModel):
     fusion_split_landing: float = Field(0.8, gt=0, le=1, description="share of a segment's landings in a view that "
                                         "must fall on one segment there for it to co-land")
     fusion_split_share: float = Field(0.66, ge=0, le=1, description="... and the share of the views where both land "
-                                      "on a mask (see shadowcorr.grouping.split_mask_ids)")
+                                      "on a mask (see shadowcorr.stages.split_mask_ids)")
     fusion_split_cover: float = Field(0.1, gt=0, le=1, description="... while the segment they land on lands back on "
                                       "each of them with this share of its landings in their view")
     fusion_threshold: float = Field(0.0, description="groups merge while their linkage exceeds this")
