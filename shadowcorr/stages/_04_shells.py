@@ -7,8 +7,9 @@ points are averaged per ``downsample_size`` grid cell, statistical outliers are 
 error ellipsoid (``ellipsoid_scale`` * sqrt of the covariance eigenvalues) and the viewing
 direction (camera centre -> centroid, or the optical axis) are computed per segment.
 
-Nearest neighbours within a segment come from one k-d tree in which segments are moved
-far apart (``ops.separated``; pykdtree: exact k-NN, about 1.5x faster than scipy's cKDTree here).
+Nearest neighbours within a segment come from k-d trees over chunks of whole segments in
+which segments are moved far apart (``ops.separated``; pykdtree: exact k-NN, about 1.5x
+faster than scipy's cKDTree here).
 """
 
 from __future__ import annotations
@@ -65,19 +66,39 @@ def remove_statistical_outliers(
     if not filtered.any():
         return keep
     pts, seg = points[filtered], segment[filtered]
-    k_max = int(k_seg[np.unique(seg)].max())
-    moved = separated(pts, seg, separation_gap(pts))
-    dist, _ = KDTree(moved).query(moved, k=k_max)
-    dist = dist.reshape(len(pts), k_max)
     k_pt = k_seg[seg]
-    upto = np.arange(k_max)[None, :] < k_pt[:, None]
-    mean_d = (dist * upto).sum(axis=1) / k_pt
+    mean_d = np.empty(pts.shape[0])
+    for lo, hi in _chunks(seg, _CHUNK_POINTS):
+        mean_d[lo:hi] = _mean_knn_distance(pts[lo:hi], seg[lo:hi] - seg[lo], k_pt[lo:hi])
     n = np.bincount(seg, minlength=num_segments)
     mu = np.bincount(seg, weights=mean_d, minlength=num_segments) / np.maximum(n, 1)
     var = np.bincount(seg, weights=(mean_d - mu[seg]) ** 2, minlength=num_segments) / np.maximum(n - 1, 1)
     limit = mu + config.outlier_std_ratio * np.sqrt(var)
     keep[np.flatnonzero(filtered)] = mean_d <= limit[seg]
     return keep
+
+
+#: Points per k-d tree: segments are searched in chunks of whole segments, so the trees stay
+#: small and cache-friendly and a large field costs its size, not its size times log of it.
+_CHUNK_POINTS = 32768
+
+
+def _chunks(segment: np.ndarray, size: int) -> list[tuple[int, int]]:
+    """[lo, hi) row ranges of a segment-sorted array, whole segments each, about ``size`` rows."""
+    starts = np.flatnonzero(np.r_[True, segment[1:] != segment[:-1]])
+    cuts = np.unique(np.searchsorted(starts, np.arange(0, segment.size, size), side="right") - 1)
+    bounds = np.r_[starts[cuts], segment.size]
+    return list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
+
+
+def _mean_knn_distance(points: np.ndarray, segment: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Mean distance of every point to its k[i] nearest points of its own segment (itself included)."""
+    k_max = int(k.max())
+    moved = separated(points, segment, separation_gap(points))
+    dist, _ = KDTree(moved).query(moved, k=k_max)
+    dist = dist.reshape(len(points), k_max)
+    upto = np.arange(k_max)[None, :] < k[:, None]
+    return (dist * upto).sum(axis=1) / k
 
 
 def segment_shells(segments: Segments, config: ShadowCorrConfig) -> SegmentShells:
