@@ -13,6 +13,8 @@ from typing import Any, Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from shadowcorr.config import DEVICE_PATTERN
+
 __all__ = ["ServiceSettings", "MiB"]
 
 MiB = 1024 * 1024
@@ -32,7 +34,7 @@ class ServiceSettings(BaseSettings):
     model_path: Path | None = Field(None, description="model file; unset = the packaged default model")
     workers: int = Field(2, ge=1, le=256, description="worker processes for decoding, prepare and assign")
     torch_threads: int = Field(1, ge=1, le=256, description="torch / BLAS threads in each worker process")
-    device: str = Field("cpu", pattern=r"^(cpu|cuda(:\d+)?|mps)$", description="torch device of the network: cpu, cuda, cuda:N")
+    device: str = Field("cpu", pattern=DEVICE_PATTERN, description="torch device of the network: cpu, cuda, cuda:N, mps")
     inference_threads: int = Field(1, ge=1, le=256, description="torch threads of the network in the main process")
     max_batch_size: int = Field(8, ge=1, le=1024, description="most scenes in one network forward pass")
     max_wait_ms: float = Field(10.0, ge=0, le=10_000, description="longest a scene waits for others to batch with")

@@ -105,12 +105,14 @@ def add_method_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
                    help="register the views' depth to each other and correct their poses first (default: the configuration's)")
     p.add_argument("--device", default="cpu", type=_device,
-                   help="torch device of the network: cpu (default), cuda or cuda:N; the rest runs on the CPU")
+                   help="torch device of the network: cpu (default), cuda, cuda:N or mps; the rest runs on the CPU")
 
 
 def _device(text: str) -> str:
-    if re.fullmatch(r"cpu|cuda(:\d+)?", text) is None:
-        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
+    from .config import DEVICE_PATTERN
+
+    if re.match(DEVICE_PATTERN, text) is None:
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N (or mps), got {text!r}")
     return text
 
 

@@ -12,6 +12,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+#: Torch devices the network may be placed on (every other stage runs on the CPU).
+DEVICE_PATTERN = r"^(cpu|cuda(:\d+)?|mps)$"
+
 #: The methods, and those that run the network.
 METHODS = ("shadowcorr", "meanshift", "projection", "fused")
 NETWORK_METHODS = ("shadowcorr", "fused")
