@@ -49,14 +49,23 @@ def unique_keys(keys: np.ndarray, return_inverse: bool = False):
     """Sorted unique int64 keys (and optionally the inverse map), by sorting.
 
     NumPy >= 2.3 answers ``np.unique`` on integers with a hash table, which is many
-    times slower than one sort when most of a million keys are distinct.
+    times slower than one sort when most of a million keys are distinct.  For the inverse,
+    non-negative keys with room to spare carry their row number in their low bits, so one
+    value sort (SIMD) replaces an argsort: about half the time for 300k keys.
     """
     if not return_inverse:
         s = np.sort(keys)
         return s[np.r_[True, s[1:] != s[:-1]]] if s.size else s
-    order = np.argsort(keys)
-    s = keys[order]
+    n = keys.size
+    row_bits = max(int(n - 1).bit_length(), 1)
+    if n and int(keys.min()) >= 0 and int(keys.max()) < 1 << (63 - row_bits):
+        packed = np.sort((keys << row_bits) | np.arange(n, dtype=np.int64))
+        order = packed & ((1 << row_bits) - 1)
+        s = packed >> row_bits
+    else:
+        order = np.argsort(keys)
+        s = keys[order]
     new = np.r_[True, s[1:] != s[:-1]] if s.size else np.zeros(0, dtype=bool)
-    inverse = np.empty(keys.size, dtype=np.int64)
+    inverse = np.empty(n, dtype=np.int64)
     inverse[order] = np.cumsum(new) - 1
     return s[new], inverse
