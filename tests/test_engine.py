@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle, View
 from shadowcorr.errors import DepthRangeError
 from shadowcorr.stages import (
-    beta_profile, cast_shadows, cooccurrence, extract_segments, segment_embedding_loss, segment_shells,
+    beta_profile, cast_shadows, cooccurrence, extract_segments, find_blobs, segment_embedding_loss, segment_shells,
     train_segment_embeddings, voxel_downsample,
 )
 
@@ -67,6 +68,37 @@ def test_segments_split_components_and_ignore_small_blobs():
     assert seg.lengths.tolist() == [1200, 900, 200]
     merged = extract_segments(bundle, exact.with_options(split_components=False))
     assert merged.instance.tolist() == [3, 5] and merged.lengths[0] == 1200 + 900 + 25
+
+
+@pytest.mark.parametrize("id_scale", [1, 1 << 24])  # small ids, and sparse large ones (renumbered)
+def test_blob_image_matches_labelling_each_instance_over_the_whole_frame(id_scale):
+    rng = np.random.default_rng(5)
+    mask = np.zeros((60, 90), np.int64)
+    for value in range(1, 9):  # random rectangles, some on the frame's edges, overlapping
+        r, c = rng.integers(0, 55), rng.integers(0, 85)
+        mask[r : r + rng.integers(3, 20), c : c + rng.integers(3, 25)] = value
+    mask[:, 0] = 9  # a column on the left edge, a row on the bottom edge
+    mask[-1, 30:] = 9
+    mask = (mask * id_scale).astype(np.int64)
+    blobs = find_blobs(mask, True, 5, first_index=7)
+    # Reference: every instance labelled over the whole frame, blobs largest first.
+    expected = np.full(mask.shape, -1)
+    index, lengths = 7, []
+    for value in np.unique(mask[mask > 0]):
+        labels, n = ndimage.label(mask == value, structure=np.ones((3, 3), bool))
+        counts = np.bincount(labels.ravel())[1:]
+        for lab in np.argsort(-counts, kind="stable"):
+            if counts[lab] >= 5:
+                expected[labels == lab + 1] = index
+                index, lengths = index + 1, lengths + [counts[lab]]
+    np.testing.assert_array_equal(blobs.labels, expected)
+    assert blobs.labels.dtype == np.int16 and blobs.lengths.tolist() == lengths
+    r0, r1, c0, c1 = blobs.bounds
+    inside = np.zeros(mask.shape, bool)
+    inside[r0:r1, c0:c1] = True
+    assert (blobs.labels[~inside] == -1).all() and (r0, r1, c0, c1) == (0, 60, 0, 90)
+    empty = find_blobs(np.zeros((4, 5), np.int32))
+    assert empty.lengths.size == 0 and (empty.labels == -1).all() and empty.labels.shape == (4, 5)
 
 
 def test_pixel_subsampling_keeps_the_downsample_cells_of_nearly_every_point():

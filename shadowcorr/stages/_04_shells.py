@@ -44,7 +44,7 @@ def voxel_downsample(points: np.ndarray, segment: np.ndarray, cell: float) -> tu
     """
     if points.shape[0] == 0:
         return points.reshape(0, 3), segment[:0]
-    key, unpack = pack_cell_keys(segment, np.floor(points / cell).astype(np.int64))
+    key, unpack = pack_cell_keys(segment, [np.floor(points[:, i] / cell).astype(np.int64) for i in range(3)])
     cells, member_cell = unique_keys(key, return_inverse=True)
     count = np.bincount(member_cell, minlength=cells.size)[:, None]
     # Column by column: bincount on a strided column beats a gather of the (N, 3) rows.

@@ -89,14 +89,14 @@ def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrCo
         nearest = np.rint(coord)
         inside &= np.abs(coord - nearest) <= config.chebyshev_fraction
         cell_axes.append(nearest)
-    cell = np.stack([c[inside] for c in cell_axes], axis=1).astype(np.int64)
-    key, unpack = pack_cell_keys(all_seg[inside], cell)
+    key, unpack = pack_cell_keys(all_seg[inside], [c[inside].astype(np.int64) for c in cell_axes])
     vox_seg, vox_cell = unpack(unique_keys(key))
 
     # Confidence: distance from the voxel centre to the segment's nearest surface point.
     centres = vox_cell * v
     gap = separation_gap(pts, centres)
-    dist, _ = KDTree(separated(pts, seg, gap)).query(separated(centres, vox_seg, gap), k=1)
+    # Leaves of 32: queries from deep inside a shadow visit many leaves (21 vs 24 ms at 16).
+    dist, _ = KDTree(separated(pts, seg, gap), leafsize=32).query(separated(centres, vox_seg, gap), k=1)
     max_d = segment_max(dist, vox_seg, s)
     d_hat = dist / (config.distance_margin * np.maximum(max_d[vox_seg], 1e-12))
     phi = beta_profile(d_hat, config.beta_alpha, config.beta_beta)
