@@ -114,11 +114,13 @@ def segment_shells(segments: Segments, config: ShadowCorrConfig) -> SegmentShell
     count = np.bincount(seg, minlength=s)
     safe = np.maximum(count, 1)[:, None]
     mean = np.stack([np.bincount(seg, weights=pts[:, i], minlength=s) for i in range(3)], axis=1) / safe
-    centred = pts - mean[seg]
-    outer = centred[:, :, None] * centred[:, None, :]
-    cov = np.stack(
-        [np.bincount(seg, weights=outer[:, i, j], minlength=s) for i in range(3) for j in range(3)], axis=1
-    ).reshape(s, 3, 3) / np.maximum(count - 1, 1)[:, None, None]
+    centred = [pts[:, i] - mean[seg, i] for i in range(3)]
+    # The six distinct products, each summed per segment on contiguous columns.
+    cov = np.empty((s, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            cov[:, i, j] = cov[:, j, i] = np.bincount(seg, weights=centred[i] * centred[j], minlength=s)
+    cov /= np.maximum(count - 1, 1)[:, None, None]
     eigval = np.clip(np.linalg.eigvalsh(cov)[:, ::-1], 0.0, None)
     axis_lengths = config.ellipsoid_scale * np.sqrt(eigval)
 
