@@ -129,14 +129,16 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         return SurfaceEvidence.empty(s, num_views)
     scale = unit_scale(bundle.units, config.units)
     index, samples = sample_segment_points(segments.points, segments.lengths, config.projection_samples)
-    pts = segments.points[index]
+    # The sample as three coordinate columns: gathers, masks and the rotation below run on
+    # contiguous 1-D arrays, several times faster than on (N, 3) rows.
+    xyz = [segments.points[index, i] for i in range(3)]
     seg = np.repeat(np.arange(s), samples)
     first = np.cumsum(samples) - samples
 
     # Bounding sphere of each segment's sample, for the frustum test.
-    safe = np.maximum(samples, 1)[:, None]
-    centre = np.stack([np.bincount(seg, weights=pts[:, i], minlength=s) for i in range(3)], axis=1) / safe
-    radius = segment_max(np.linalg.norm(pts - centre[seg], axis=1), seg, s)
+    safe = np.maximum(samples, 1)
+    centre = np.stack([np.bincount(seg, weights=c, minlength=s) / safe for c in xyz], axis=1)
+    radius = segment_max(np.sqrt(sum((c - centre[seg, i]) ** 2 for i, c in enumerate(xyz))), seg, s)
 
     visible = np.zeros((s, num_views), dtype=np.int64)
     on_mask = np.zeros((s, num_views), dtype=np.int64)
@@ -155,12 +157,13 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
             continue
         take = samples[cs]
         rows = np.repeat(first[cs], take) + (np.arange(take.sum()) - np.repeat(np.cumsum(take) - take, take))
-        cam = (pts[rows] - translation) @ rotation
-        z = cam[:, 2]
-        front = z > 1e-9
-        rows, cam, z = rows[front], cam[front], z[front]
-        col = np.rint(k.fx * cam[:, 0] / z + k.cx).astype(np.int64)
-        row = np.rint(k.fy * cam[:, 1] / z + k.cy).astype(np.int64)
+        # World -> camera: cam_i = sum_j (p_j - t_j) R_ji, column by column.
+        rel = [c[rows] - translation[i] for i, c in enumerate(xyz)]
+        x, y, z = (rel[0] * rotation[0, i] + rel[1] * rotation[1, i] + rel[2] * rotation[2, i] for i in range(3))
+        front = np.flatnonzero(z > 1e-9)
+        rows, x, y, z = rows[front], x[front], y[front], z[front]
+        col = np.rint(k.fx * x / z + k.cx).astype(np.int64)
+        row = np.rint(k.fy * y / z + k.cy).astype(np.int64)
         inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
         rows, z, flat = rows[inside], z[inside], (row * width + col)[inside]
         depth = view.depth.ravel()[flat].astype(np.float64) * scale
