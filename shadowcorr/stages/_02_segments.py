@@ -191,14 +191,17 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         on_grid = blobs.labels[r0:r1:stride, c0:c1:stride]
         depth = view.depth[r0:r1:stride, c0:c1:stride]
         chosen = (on_grid >= 0) & np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle)
-        rows, cols = np.nonzero(chosen)
-        blob_of_pixel = on_grid[rows, cols] - (first_segment - blobs.lengths.size)
+        on_grid_pixel = np.flatnonzero(chosen)
+        # Grouped by blob, raster order within a blob: a stable sort, radix on int16 indices.
+        blob_of_pixel = on_grid.ravel()[on_grid_pixel] - (first_segment - blobs.lengths.size)
         by_blob = np.argsort(blob_of_pixel, kind="stable")
-        rows, cols, blob_of_pixel = rows[by_blob] * stride + r0, cols[by_blob] * stride + c0, blob_of_pixel[by_blob]
+        blob_of_pixel = blob_of_pixel[by_blob]
+        rows, cols = np.divmod(on_grid_pixel[by_blob], chosen.shape[1])
+        rows, cols = rows * stride + r0, cols * stride + c0
         d = view.depth[rows, cols]
         pts = back_project(view, rows.astype(np.float64), cols.astype(np.float64), d.astype(np.float64))
         inst, comp, sizes = blobs.instance, blobs.component, blobs.lengths
-        points.append(pts * scale)
+        points.append(pts * scale if scale != 1.0 else pts)
         lengths.append(np.bincount(blob_of_pixel, minlength=inst.size))
         view_idx.append(np.full(inst.size, vi))
         instances.append(inst)
