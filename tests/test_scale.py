@@ -7,11 +7,16 @@ import pytest
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
-from shadowcorr import SceneLimitError, ShadowCorrConfig, correspond, load_model, prepare
+from shadowcorr import SceneLimitError, ShadowCorrConfig, assign, correspond, embed, load_model, prepare
 from shadowcorr.stages import cooccurrence, segment_embedding_loss, train_segment_embeddings
 from shadowcorr.stages._06_segment_embedding import _packed_components
 
 from .scenes import sphere_scene
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
 
 
 def same_partition(a, b) -> bool:
@@ -100,3 +105,19 @@ def test_scene_limits_raise_before_heavy_work(two_clusters):
     with pytest.raises(SceneLimitError) as err:
         prepare(two_clusters, ShadowCorrConfig(max_voxels=10))
     assert err.value.limit == "max_voxels" and err.value.value > 10
+
+
+def test_a_stage_over_its_time_budget_refuses_the_scene(two_clusters, model):
+    # No stage of this tiny scene takes 1 microsecond or less: the first stage to end refuses it.
+    with pytest.raises(SceneLimitError) as err:
+        prepare(two_clusters, ShadowCorrConfig(max_stage_seconds=1e-6))
+    assert err.value.limit == "max_stage_seconds" and err.value.value > 1e-6
+    assert "stage 'poses'" in str(err.value) and "max_stage_seconds = 1e-06" in str(err.value)
+    # The budget is checked in assign too (grouping), and a generous one changes nothing.
+    scene = prepare(two_clusters)
+    (emb,) = embed(model, [scene])
+    with pytest.raises(SceneLimitError, match="max_stage_seconds"):
+        assign(scene, emb, scene.config.with_options(max_stage_seconds=1e-6))
+    relaxed = correspond(two_clusters, model, ShadowCorrConfig(max_stage_seconds=60))
+    plain = correspond(two_clusters, model)
+    assert [s.object for s in relaxed.segments] == [s.object for s in plain.segments]
