@@ -15,6 +15,8 @@ from shadowcorr.stages import (
     train_segment_embeddings, voxel_downsample,
 )
 
+from shadowcorr.ops import segment_chunks
+
 from .paths import REFERENCE_CHECKPOINT as REFERENCE
 from .paths import SAMPLE_DIR as SAMPLE
 from .scenes import sphere_scene
@@ -130,6 +132,37 @@ def test_shadows_fill_the_interior():
     # Voxels reach well behind the visible shell, into the sphere's interior.
     assert np.linalg.norm(centres, axis=1).min() < 30
     assert np.all(shadows.confidence > cfg.min_confidence)
+
+
+def test_shadows_and_outliers_in_small_chunks_equal_one_pass(monkeypatch):
+    import shadowcorr.stages._04_shells as shells_mod
+    import shadowcorr.stages._05_shadows as shadows_mod
+
+    bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII)
+    cfg = ShadowCorrConfig()
+    seg = extract_segments(bundle, cfg)
+    shells = segment_shells(seg, cfg)
+    whole = cast_shadows(seg, shells, cfg)
+    # Chunks of about one segment's worth of rows: many chunks, whole segments each.
+    monkeypatch.setattr(shadows_mod, "_CHUNK_LAYER_POINTS", 500)
+    monkeypatch.setattr(shells_mod, "_CHUNK_POINTS", 100)
+    assert len(segment_chunks(shells.segment, 500, weight=np.full(shells.segment.size, 3))) > 5
+    chunked_shells = segment_shells(seg, cfg)
+    np.testing.assert_array_equal(chunked_shells.points, shells.points)
+    chunked = cast_shadows(seg, chunked_shells, cfg)
+    for name in ("segment", "cell", "confidence"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
+
+
+def test_segment_chunks_hold_whole_segments_of_about_the_asked_weight():
+    segment = np.repeat(np.arange(6), [3, 1, 4, 2, 5, 1])
+    weight = np.arange(segment.size) % 3 + 1
+    chunks = segment_chunks(segment, 6, weight=weight)
+    assert chunks[0][0] == 0 and chunks[-1][1] == segment.size
+    assert all(a[1] == b[0] for a, b in zip(chunks, chunks[1:]))
+    for lo, hi in chunks:  # never splits a segment
+        assert (lo == 0 or segment[lo] != segment[lo - 1]) and (hi == segment.size or segment[hi] != segment[hi - 1])
+    assert len(chunks) >= 3 and segment_chunks(segment[:0], 6) == []
 
 
 # A small "rock field" of spheres in the reference data's size range; spheres 1 and 2 touch.

@@ -21,7 +21,7 @@ import numpy as np
 import small_gicp
 
 from ..config import ShadowCorrConfig
-from ..ops import pack_cell_keys, separated, separation_gap, unique_keys
+from ..ops import pack_cell_keys, segment_chunks, separated, separation_gap, unique_keys
 from ._02_segments import Segments
 
 
@@ -71,7 +71,7 @@ def remove_statistical_outliers(
     pts, seg = points[filtered], segment[filtered]
     k_pt = k_seg[seg]
     mean_d = np.empty(pts.shape[0])
-    for lo, hi in _chunks(seg, _CHUNK_POINTS):
+    for lo, hi in segment_chunks(seg, _CHUNK_POINTS):
         mean_d[lo:hi] = _mean_knn_distance(pts[lo:hi], seg[lo:hi] - seg[lo], k_pt[lo:hi])
     n = np.bincount(seg, minlength=num_segments)
     mu = np.bincount(seg, weights=mean_d, minlength=num_segments) / np.maximum(n, 1)
@@ -84,14 +84,6 @@ def remove_statistical_outliers(
 #: Points per k-d tree: segments are searched in chunks of whole segments, so the trees stay
 #: small and cache-friendly and a large field costs its size, not its size times log of it.
 _CHUNK_POINTS = 32768
-
-
-def _chunks(segment: np.ndarray, size: int) -> list[tuple[int, int]]:
-    """[lo, hi) row ranges of a segment-sorted array, whole segments each, about ``size`` rows."""
-    starts = np.flatnonzero(np.r_[True, segment[1:] != segment[:-1]])
-    cuts = np.unique(np.searchsorted(starts, np.arange(0, segment.size, size), side="right") - 1)
-    bounds = np.r_[starts[cuts], segment.size]
-    return list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
 
 
 def _mean_knn_distance(points: np.ndarray, segment: np.ndarray, k: np.ndarray) -> np.ndarray:
