@@ -26,6 +26,34 @@ _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
 
 @dataclass
+class SegmentImage:
+    """A view's image of segment indices (-1: no segment), kept as the window of the frame that
+    holds every segment pixel: a quarter of the sample scene's frame, and int16 while the
+    indices fit (see :attr:`Blobs.labels`), which is what bounds a large field's memory."""
+
+    window: np.ndarray  # (h, w) segment index per pixel of the window
+    top: int  # the window's first row and column in the frame
+    left: int
+    shape: tuple[int, int]  # the whole frame (H, W)
+
+    @classmethod
+    def from_blobs(cls, blobs: "Blobs") -> "SegmentImage":
+        r0, r1, c0, c1 = blobs.bounds
+        return cls(blobs.labels[r0:r1, c0:c1].copy(), r0, c0, blobs.labels.shape)
+
+    def at(self, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+        """Segment index at frame pixels (``row``, ``col``) inside the frame; -1 off the window."""
+        r, c = row - self.top, col - self.left
+        h, w = self.window.shape
+        off = (r < 0) | (r >= h) | (c < 0) | (c >= w)
+        if h == 0 or w == 0:
+            return np.full(np.shape(row), -1, dtype=np.int64)
+        found = self.window.ravel()[np.clip(r, 0, h - 1) * w + np.clip(c, 0, w - 1)].astype(np.int64)
+        found[off] = -1
+        return found
+
+
+@dataclass
 class Segments:
     """Ragged batch of segments. Lengths in the configuration's units, world frame."""
 
@@ -39,11 +67,9 @@ class Segments:
     optical_axis: np.ndarray  # (S, 3) float64, unit vector
     view_names: list[str]
     truth: np.ndarray | None = None  # (S,) int64 ground-truth object per segment, metrics only
-    # Per view: (H, W) image of the segment index on each pixel (-1: no segment), for the
-    # cross-view surface evidence: int16 while the indices fit (half the memory of a large
-    # field's label images), else int32 (see Blobs.labels).  None for views without images
-    # (point flavour).
-    pixel_segment: list[np.ndarray | None] | None = None
+    # Per view: the segment index on each pixel, for the cross-view surface evidence.  None
+    # for views without images (point flavour).
+    pixel_segment: list[SegmentImage | None] | None = None
 
     @property
     def num_segments(self) -> int:
@@ -180,7 +206,7 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
     for vi, view in enumerate(bundle.views):
         blobs = find_blobs(view.mask, config.split_components, config.min_blob_pixels, first_index=first_segment)
         first_segment += blobs.lengths.size
-        pixel_segment.append(blobs.labels)
+        pixel_segment.append(SegmentImage.from_blobs(blobs))
         if blobs.lengths.size == 0:
             continue
         # Back-project the pixels of a stride x stride grid, blob after blob, in raster order.
