@@ -3,6 +3,8 @@
 The main CLI calls ``add_synth_parser(subparsers)``; the parsed arguments go to
 ``run_synth(args)``.  Every ``SynthConfig`` knob that a user plausibly changes has a
 flag; ``--config FILE`` loads a JSON config (flags given explicitly override it).
+``--field`` draws every scene from a ``FieldDistribution`` instead (the defaults, or the
+JSON of ``--field-config FILE``); the fixed-config flags do not apply then.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from .config import SynthConfig
+    from .field import FieldDistribution
 
 # flag -> SynthConfig field, for the plain scalar knobs (dest defaults to None = not given).
 _SCALARS: list[tuple[str, str, type, str]] = [
@@ -59,7 +62,8 @@ def add_synth_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
         "synth",
         help="generate synthetic rock-field scene bundles with ground truth",
         description="Procedural lunar rock fields settled by physics (MuJoCo) and rendered from a camera ring. "
-        "Writes OUT/scene_00000 ... (bundles with ground_truth 'instance') and OUT/dataset.json.",
+        "Writes OUT/scene_00000 ... (bundles with ground truth) and OUT/dataset.json; --field draws each "
+        "scene from the field-robot distribution.",
     )
     p.add_argument("--scenes", type=int, required=True, help="number of scenes")
     p.add_argument("--out", required=True, help="output directory")
@@ -74,6 +78,11 @@ def add_synth_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                    "(one per camera: uneven rigs)")
     for flag, _, kind, text in _SCALARS:
         p.add_argument(flag, type=kind, default=None, help=text)
+    p.add_argument("--field", action="store_true",
+                   help="draw every scene's rig, rocks and perturbations from the field-robot distribution "
+                   "(shadowcorr.synth.field.FieldDistribution); dataset.json records each scene's draw")
+    p.add_argument("--field-config", metavar="FILE",
+                   help="JSON file with FieldDistribution fields (implies --field)")
     p.add_argument("--resume", action="store_true", help="skip scenes that already have a manifest")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_synth)
@@ -98,6 +107,28 @@ def config_from_args(args: argparse.Namespace) -> "SynthConfig":
     return SynthConfig.model_validate(fields)
 
 
+def _fixed_flags_given(args: argparse.Namespace) -> list[str]:
+    """The fixed-config options given on the command line (they conflict with ``--field``)."""
+    given = [flag for flag, _, _, _ in _SCALARS if getattr(args, flag.lstrip("-").replace("-", "_")) is not None]
+    given += [f"--{a.replace('_', '-')}" for a in ("config", "rocks", "diameter", "pitch_deg", "azimuths_deg")
+              if getattr(args, a, None) is not None]
+    return given
+
+
+def field_from_args(args: argparse.Namespace) -> "FieldDistribution | None":
+    """The ``FieldDistribution`` of ``--field`` / ``--field-config`` (validated), or None."""
+    from .field import FieldDistribution
+
+    if not (getattr(args, "field", False) or getattr(args, "field_config", None)):
+        return None
+    conflicting = _fixed_flags_given(args)
+    if conflicting:
+        raise ValueError(f"--field draws each scene's config; drop {', '.join(conflicting)} "
+                         "(put ranges in a --field-config file instead)")
+    fields = json.loads(Path(args.field_config).read_text()) if args.field_config else {}
+    return FieldDistribution.model_validate(fields)
+
+
 def run_synth(args: argparse.Namespace) -> int:
     """Generate the dataset; prints one summary line.  Raises ValueError on bad options."""
     from pydantic import ValidationError
@@ -105,14 +136,15 @@ def run_synth(args: argparse.Namespace) -> int:
     from .generate import generate_dataset
 
     try:
-        config = config_from_args(args)
+        field = field_from_args(args)
+        config = None if field is not None else config_from_args(args)
     except ValidationError as e:
         raise ValueError(f"invalid synth options: {e}") from None
     if args.scenes < 0 or args.workers < 1:
         raise ValueError("--scenes must be >= 0 and --workers >= 1")
     paths = generate_dataset(
         config, args.scenes, args.out, seed=args.seed, workers=args.workers,
-        progress=not args.quiet, resume=args.resume,
+        progress=not args.quiet, resume=args.resume, field=field,
     )
     print(f"wrote {len(paths)} scene(s) to {args.out} (dataset.json records the config and seed)")
     return 0

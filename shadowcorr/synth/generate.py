@@ -10,6 +10,11 @@ rocks, the drop, the cameras and the noise separately (so, e.g., changing the ca
 count leaves the rock field unchanged).  Scene ``i`` of a dataset uses
 ``scene_seed(seed, i)``, so results do not depend on the number of workers or on the
 order in which workers finish.
+
+Field datasets (``generate_dataset(field=FieldDistribution(...))``, ``synth --field``)
+draw every scene's config and perturbations from a distribution instead
+(``shadowcorr.synth.field``): scene ``i`` is ``synthesize_field(field, scene_seed(seed, i))``
+and ``dataset.json`` lists what each scene drew.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,6 +37,9 @@ from .noise import boundary_noise, morph_mask, noisy_depth, noisy_pose
 from .physics import PhysicsParams, place_rocks, settle
 from .rocks import RockMesh, make_rock, sample_diameters
 from .terrain import make_terrain
+
+if TYPE_CHECKING:
+    from .field import FieldDistribution
 
 DATASET_FILE = "dataset.json"
 TRUTH_FILE = "synth_truth.json"
@@ -213,11 +221,20 @@ def write_scene(scene: SynthScene, out_dir: str | Path, config: SynthConfig) -> 
     return path
 
 
-def _one(job: tuple[dict, int, int, str]) -> tuple[int, str, dict[str, Any]]:
-    """Worker: generate and write scene ``index``; returns only a small summary."""
-    cfg_dict, index, seed, out = job
-    config = SynthConfig.model_validate(cfg_dict)
-    scene = synthesize(config, seed)
+def _one(job: tuple[str, dict, int, int, str]) -> tuple[int, str, dict[str, Any]]:
+    """Worker: generate and write scene ``index``; returns only a small summary.
+
+    ``job`` = (kind, spec, index, seed, out): kind ``config`` renders the ``SynthConfig``
+    ``spec``; kind ``field`` draws the scene from the ``FieldDistribution`` ``spec``."""
+    kind, spec, index, seed, out = job
+    if kind == "field":
+        from .field import FieldDistribution, synthesize_field
+
+        scene = synthesize_field(FieldDistribution.model_validate(spec), seed)
+        config = SynthConfig.model_validate(scene.truth["field"]["config"])
+    else:
+        config = SynthConfig.model_validate(spec)
+        scene = synthesize(config, seed)
     path = write_scene(scene, out, config)
     t = scene.truth
     return index, str(path), {"contacts": len(t["contacts"]), "rocks": len(t["rocks"]), "seconds": t["timings_s"]["total"]}
@@ -238,8 +255,14 @@ def generate_dataset(
     *,
     progress: bool = True,
     resume: bool = False,
+    field: FieldDistribution | None = None,
 ) -> list[Path]:
     """Generate ``n_scenes`` bundles ``out_dir/scene_00000 ...`` plus ``out_dir/dataset.json``.
+
+    Every scene uses ``config``, or, with ``field``, draws its own config and perturbations
+    from that distribution (``config`` must then be None); ``dataset.json`` then records
+    the distribution under ``field`` and, per scene, exactly what was drawn (``scene_seed``,
+    ``config``, ``perturbations``; see ``shadowcorr.synth.field.sample_for_seed``).
 
     ``workers`` > 1 runs scenes in that many spawned processes (spawn, not fork: OpenGL
     contexts and MuJoCo do not survive a fork safely).  ``resume`` skips scenes whose
@@ -249,7 +272,10 @@ def generate_dataset(
     """
     from tqdm import tqdm
 
-    config = config or SynthConfig()
+    if field is not None and config is not None:
+        raise ValueError("give either config or field, not both")
+    if field is None:
+        config = config or SynthConfig()
     if n_scenes < 0:
         raise ValueError("n_scenes must be >= 0")
     if workers < 1:
@@ -266,15 +292,24 @@ def generate_dataset(
         "seed": int(seed),
         "n_scenes": n_scenes,
         "seed_rule": "scene i uses SeedSequence([seed, i]).generate_state(1, uint32)[0]",
-        "config": config.model_dump(mode="json"),
-        "scenes": scenes,
     }
+    if field is None:
+        record["config"] = config.model_dump(mode="json")
+        job_kind, spec = "config", config.model_dump(mode="json")
+    else:
+        from .field import sample_for_seed
+
+        record["field"] = field.model_dump(mode="json")
+        record["field_rule"] = "scene i is shadowcorr.synth.field.synthesize_field(field, its seed)"
+        for s in scenes:  # drawing needs no rendering: the record is complete before any scene exists
+            s.update({k: v for k, v in sample_for_seed(field, s["seed"]).items() if k != "seed"})
+        job_kind, spec = "field", field.model_dump(mode="json")
+    record["scenes"] = scenes
     # Written first (an interrupted run still records how it was made) and again at the end.
     (out / DATASET_FILE).write_text(json.dumps(record, indent=1))
 
-    cfg = config.model_dump(mode="json")
     jobs = [
-        (cfg, s["index"], s["seed"], str(out / s["dir"]))
+        (job_kind, spec, s["index"], s["seed"], str(out / s["dir"]))
         for s in scenes
         if not (resume and (out / s["dir"] / "manifest.json").exists())
     ]

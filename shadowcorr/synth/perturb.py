@@ -12,6 +12,11 @@ bundle to ``ground_truth = "mapped"``: each view's ``instance_objects`` maps its
 to the objects they came from (a merged mask maps to the object owning most of its
 pixels).  New ids are fresh per view (above the view's largest id), so an id says
 nothing across views: the truth lives only in ``instance_objects``.
+
+Spurious blobs (``spurious_blobs``) are the one perturbation that adds masks with no
+rock behind them: a blob on the background is an object of its own, mapped to a fresh
+object id (from ``SPURIOUS_OBJECT_BASE`` up), never shared with a rock or another blob;
+see that function for why it is not "unknown" (-1).
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from .noise import morph_mask, noisy_depth, perturbed_pose
 
 __all__ = [
     "DEPTH_NOISE_REFERENCE_CM",
+    "SPURIOUS_OBJECT_BASE",
     "depth_holes",
     "depth_noise",
     "drop_masks",
@@ -36,11 +42,16 @@ __all__ = [
     "pose_error",
     "relabel_ids",
     "split_masks",
+    "spurious_blobs",
 ]
 
 #: Depth at which ``depth_noise``'s ``fraction`` is the noise sigma relative to depth
 #: (the real rig's camera-to-field distance).
 DEPTH_NOISE_REFERENCE_CM = 750.0
+
+#: Smallest object id a spurious background blob gets (above every rock id a bundle
+#: plausibly has), so such blobs are recognisable in the ground truth.
+SPURIOUS_OBJECT_BASE = 1_000_000
 
 
 # --------------------------------------------------------------------------- helpers
@@ -314,4 +325,84 @@ def relabel_ids(bundle: SceneBundle, rng: np.random.Generator) -> SceneBundle:
         fresh = rng.permutation(ids.size) + 1
         masks.append(_remap(v.mask, ids, fresh) if ids.size else v.mask)
         tables.append(None if table is None else {int(f): table[int(i)] for i, f in zip(ids, fresh) if int(i) in table})
+    return _with_masks(bundle, masks, tables)
+
+
+def _largest_object(bundle: SceneBundle, views: list[View]) -> int:
+    """The largest ground-truth object id of the bundle (0 when it has none)."""
+    tables = [_truth_table(bundle, v) or {} for v in views]
+    return max((max(t.values()) for t in tables if t), default=0)
+
+
+def spurious_blobs(bundle: SceneBundle, rng: np.random.Generator, count: int, *,
+                   radius_px: tuple[float, float] = (2.0, 6.0), on_rocks: float = 0.5) -> SceneBundle:
+    """``count`` small false detections per view: elliptic blobs of fresh mask ids.
+
+    Each blob is an ellipse with semi-axes drawn in ``radius_px`` at a random angle,
+    centred on a random pixel: with probability ``on_rocks`` a pixel of a mask (a
+    segmenter cutting a fragment off a rock), otherwise a background pixel with valid
+    depth (a shadow or pebble taken for a rock; any background pixel when none has
+    depth).  A blob takes only the pixels of the ellipse that carried the centre's label
+    in the input and that no earlier blob took, so blobs never overlap and never cross
+    a mask boundary.  A blob that would take no pixel is left out.
+
+    Ground truth (when the bundle has some; the bundle becomes ``mapped``): a blob on a
+    mask maps to that mask's object (every pixel of it belongs to that rock).  A blob on
+    the background maps to a fresh object id of its own, from ``SPURIOUS_OBJECT_BASE``
+    (or above the bundle's largest object id) up, unique in the bundle.  It is not
+    marked unknown (-1) on purpose: the metrics leave unknown segments out, so merging a
+    false detection into a rock would cost nothing, and training treats all unknown
+    voxels of a scene as one object, which would pull unrelated blobs together.  As an
+    object of its own, the blob must stay alone to score well.
+    """
+    if count < 0:
+        raise ValueError(f"count must be >= 0, got {count}")
+    lo, hi = radius_px
+    if not 0.0 < lo <= hi:
+        raise ValueError(f"radius_px must be (lo, hi) with 0 < lo <= hi, got {radius_px}")
+    if not 0.0 <= on_rocks <= 1.0:
+        raise ValueError(f"on_rocks must lie in [0, 1], got {on_rocks}")
+    views = _image_views(bundle)
+    next_object = max(SPURIOUS_OBJECT_BASE, _largest_object(bundle, views) + 1)
+    masks, tables = [], []
+    for v in views:
+        table = _truth_table(bundle, v)
+        clean = v.mask
+        h, w = clean.shape
+        on_rock = rng.random(count) < on_rocks
+        axes = rng.uniform(lo, hi, size=(count, 2))
+        angles = rng.uniform(0.0, np.pi, size=count)
+        picks = rng.random(count)  # where among the candidate pixels each centre falls
+        rock_px = np.flatnonzero(clean.ravel() > 0)
+        ground_px = np.flatnonzero((clean.ravel() == 0) & (v.depth.ravel() > 0))
+        if ground_px.size == 0:
+            ground_px = np.flatnonzero(clean.ravel() == 0)
+        mask = clean.astype(np.int64)
+        next_id = int(clean.max(initial=0)) + 1
+        for k in range(count):  # a few blobs per view, each vectorised over its window
+            candidates = rock_px if on_rock[k] and rock_px.size else ground_px
+            if candidates.size == 0:
+                continue
+            cy, cx = divmod(int(candidates[int(picks[k] * candidates.size)]), w)
+            label = int(clean[cy, cx])
+            reach = int(np.ceil(axes[k].max()))
+            y0, y1, x0, x1 = max(0, cy - reach), min(h, cy + reach + 1), max(0, cx - reach), min(w, cx + reach + 1)
+            yy, xx = np.mgrid[y0:y1, x0:x1]
+            c, s = np.cos(angles[k]), np.sin(angles[k])
+            along, across = (xx - cx) * c + (yy - cy) * s, -(xx - cx) * s + (yy - cy) * c
+            inside = (along / axes[k, 0]) ** 2 + (across / axes[k, 1]) ** 2 <= 1.0
+            window = mask[y0:y1, x0:x1]
+            take = inside & (clean[y0:y1, x0:x1] == label) & (window == label)
+            if not take.any():
+                continue
+            window[take] = next_id
+            if table is not None:
+                if label == 0:
+                    table[next_id] = next_object
+                    next_object += 1
+                elif label in table:
+                    table[next_id] = table[label]
+            next_id += 1
+        masks.append(_mask_dtype(mask, clean.dtype))
+        tables.append(table)
     return _with_masks(bundle, masks, tables)
