@@ -57,6 +57,7 @@ ALL = [
     lambda b, r: perturb.merge_touching(b, r, 0.5),
     lambda b, r: perturb.drop_masks(b, r, 0.2),
     lambda b, r: perturb.relabel_ids(b, r),
+    lambda b, r: perturb.spurious_blobs(b, r, 4, radius_px=(2.0, 5.0), on_rocks=0.5),
 ]
 
 
@@ -233,6 +234,63 @@ def test_truth_survives_chains_of_id_changes(scene):
     merged = perturb.merge_touching(out, _rng(11), 0.5)
     for vi in range(len(scene.views)):
         assert np.all(_object_image(merged, vi) >= 0), "every id of a mapped bundle keeps an object"
+
+
+def _with_ground(bundle: SceneBundle, depth: float = 900.0) -> SceneBundle:
+    """The sphere scene with valid depth on the background too (like synth's terrain)."""
+    return replace(bundle, views=[replace(v, depth=np.where(v.depth > 0, v.depth, depth).astype(np.float32))
+                                  for v in bundle.views])
+
+
+@pytest.mark.parametrize("on_rocks", [0.0, 1.0])
+def test_spurious_blobs_are_small_new_ids_with_exact_truth(scene, on_rocks):
+    base = _with_ground(scene)
+    count, (lo, hi) = 5, (2.0, 4.0)
+    out = perturb.spurious_blobs(base, _rng(13), count, radius_px=(lo, hi), on_rocks=on_rocks)
+    assert out.ground_truth == "mapped"
+    objects = []
+    for vi, (clean, view) in enumerate(zip(base.views, out.views)):
+        top = int(clean.mask.max())
+        new = [int(i) for i in np.unique(view.mask) if i > top]
+        assert 1 <= len(new) <= count
+        truth_before, truth_after = _object_image(base, vi), _object_image(out, vi)
+        for i in new:
+            blob = view.mask == i
+            assert 1 <= blob.sum() <= np.pi * hi * hi + 1, "a blob fits in its ellipse"
+            under = np.unique(clean.mask[blob])
+            assert under.size == 1, "a blob never crosses a mask boundary"
+            if on_rocks:
+                assert under[0] > 0 and np.all(truth_after[blob] == under[0]), "a blob on a rock is that rock"
+            else:
+                assert under[0] == 0 and np.all(base.views[vi].depth[blob] > 0), "on the ground, where depth is"
+                objects.append(int(truth_after[blob][0]))
+        old = view.mask <= top
+        assert np.array_equal(truth_after[old], truth_before[old]), "other pixels keep their object"
+        assert np.all(truth_after[view.mask > 0] >= 0), "every id has ground truth"
+    if not on_rocks:
+        assert min(objects) >= perturb.SPURIOUS_OBJECT_BASE and len(set(objects)) == len(objects), \
+            "each background blob is an object of its own, unlike any rock"
+
+
+def test_spurious_blobs_stack_with_other_id_changes(scene):
+    """Blobs on a mapped bundle: new objects above every existing one; rock blobs follow the table."""
+    split = perturb.split_masks(_with_ground(scene), _rng(14), 0.5)
+    once = perturb.spurious_blobs(split, _rng(15), 3, on_rocks=0.5)
+    twice = perturb.spurious_blobs(once, _rng(16), 3, on_rocks=0.0)
+    seen = [o for v in once.views for o in v.instance_objects.values()]
+    later = {o for v in twice.views for o in v.instance_objects.values()} - set(seen)
+    assert later and min(later) > max(seen)
+    for vi in range(len(scene.views)):
+        keep = np.isin(twice.views[vi].mask, list(once.views[vi].instance_objects))
+        assert np.array_equal(_object_image(twice, vi)[keep], _object_image(once, vi)[keep])
+
+
+def test_spurious_blobs_check_their_arguments(scene):
+    for kwargs in (dict(count=-1), dict(count=2, radius_px=(0.0, 3.0)), dict(count=2, radius_px=(4.0, 3.0)),
+                   dict(count=2, on_rocks=1.5)):
+        with pytest.raises(ValueError):
+            perturb.spurious_blobs(scene, _rng(), **kwargs)
+    assert _snapshot(perturb.spurious_blobs(scene, _rng(), 0)) == _snapshot(scene)
 
 
 def test_without_ground_truth_nothing_is_invented(scene):

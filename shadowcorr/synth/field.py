@@ -367,7 +367,7 @@ class FieldDistribution(_Frozen):
         n_rocks = max(1, min(n_drawn, fits))
         config = SynthConfig(
             n_rocks=(n_rocks, n_rocks),
-            rock_diameter=(round(d_lo, 3), round(d_hi, 3)),
+            rock_diameter=(d_lo, d_hi),
             rock_subdivisions=self.rock_subdivisions,
             rock_roughness=_uniform(rng, self.rock_roughness),
             field_radius=field_radius,
