@@ -147,6 +147,8 @@ def _dataset_info(directory: str | None, used: int) -> dict[str, Any] | None:
             d = json.loads(rec.read_text())
             info["generator"] = {k: d.get(k) for k in ("format", "shadowcorr_version", "seed", "n_scenes", "seed_rule",
                                                         "config")}  # fmt: skip
+            if "field" in d:  # a field-distribution dataset (synth --field): the distribution, not one config
+                info["generator"]["field"] = d["field"]
         except (OSError, ValueError):
             info["generator"] = "dataset.json unreadable"
     return info
