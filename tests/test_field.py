@@ -224,6 +224,11 @@ def test_ground_truth_exact_after_each_perturbation(clean_scene, step):
     assert any(changed), "the perturbation did something"
     if step.name in ("merge_touching", "split_masks", "spurious_blobs"):
         assert out.ground_truth == "mapped"
+    root = np.random.SeedSequence(3)
+    first, second = apply_perturbations(clean, (step,), root), apply_perturbations(clean, (step,), root)
+    for a, b, c in zip(first.views, second.views, out.views):  # an int seed and its SeedSequence: the same streams
+        assert np.array_equal(a.mask, b.mask) and np.array_equal(a.depth, b.depth) and np.array_equal(a.pose, b.pose)
+        assert np.array_equal(a.mask, c.mask) and np.array_equal(a.depth, c.depth) and np.array_equal(a.pose, c.pose)
 
 
 def test_generated_scene_applies_its_recipe_reproducibly(clean_scene):
@@ -238,6 +243,24 @@ def test_generated_scene_applies_its_recipe_reproducibly(clean_scene):
     for a, b in zip(bundle.views, again.views):
         assert np.array_equal(a.mask, b.mask) and np.array_equal(a.depth, b.depth) and np.array_equal(a.pose, b.pose)
         assert a.instance_objects == b.instance_objects
+
+
+def test_training_preparation_sees_exact_truth(clean_scene):
+    """Prepared for training, a perturbed field scene has truth on every segment; ground blobs
+    are segments of objects of their own (ids from SPURIOUS_OBJECT_BASE)."""
+    from shadowcorr.evaluation import voxel_truth
+    from shadowcorr.pipeline import prepare
+    from shadowcorr.train.dataset import training_pipeline
+
+    blobs = {"prob": 1.0, "count": [6, 6], "on_rocks": [0.0, 0.0]}
+    d = FieldDistribution(**TINY, perturbations={"clean_prob": 0.0, **ALL_ON, "spurious_blobs": blobs})
+    bundle, _ = generate_field_scene(d, 21)
+    scene = prepare(bundle, training_pipeline())
+    truth = scene.segment_truth
+    assert truth is not None and np.all(truth >= 0), "no segment without ground truth"
+    rocks = len(clean_scene.truth["rocks"])
+    assert np.any((truth >= 1) & (truth <= rocks)) and np.any(truth >= perturb.SPURIOUS_OBJECT_BASE)
+    assert set(np.unique(voxel_truth(scene))) <= set(np.unique(truth))
 
 
 def test_cli_writes_a_field_dataset(tmp_path):

@@ -81,6 +81,18 @@ def _check_range(name: str, lo: float, hi: float, *, low: float | None = None, h
         raise ValueError(f"{name}: values must be <= {high}, got {hi}")
 
 
+def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return float(rng.uniform(bounds[0], bounds[1]))
+
+
+def _integer(rng: np.random.Generator, bounds: tuple[int, int]) -> int:
+    return int(rng.integers(bounds[0], bounds[1] + 1))
+
+
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return float(math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1]))))
+
+
 class _Frozen(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -89,6 +101,10 @@ class _Frozen(BaseModel):
 class _Applied(_Frozen):
     prob: Probability = Field(0.3, description="chance this perturbation is applied to a scene")
 
+    def draw(self, rng: np.random.Generator) -> dict[str, Any]:
+        """Keyword arguments of the perturbation, drawn in the ranges (the same draws every time)."""
+        raise NotImplementedError
+
 
 class DepthNoiseRange(_Applied):
     """``perturb.depth_noise``: sigma = fraction * z^2 / 750 cm (the fraction is sigma/z at 7.5 m)."""
@@ -96,12 +112,18 @@ class DepthNoiseRange(_Applied):
     prob: Probability = 0.5
     fraction: tuple[float, float] = (0.0, 0.02)
 
+    def draw(self, rng: np.random.Generator) -> dict[str, Any]:
+        return {"fraction": _uniform(rng, self.fraction)}
+
 
 class DepthHolesRange(_Applied):
     """``perturb.depth_holes``: this share of valid depth pixels invalid, in blobs ~``blob_px`` across."""
 
     fraction: tuple[float, float] = (0.0, 0.1)
     blob_px: tuple[float, float] = (8.0, 24.0)
+
+    def draw(self, rng: np.random.Generator) -> dict[str, Any]:
+        return {"fraction": _uniform(rng, self.fraction), "blob_px": _uniform(rng, self.blob_px)}
 
 
 class PoseErrorRange(_Applied):
@@ -111,6 +133,9 @@ class PoseErrorRange(_Applied):
     rotation_deg: tuple[float, float] = (0.0, 2.0)
     translation_cm: tuple[float, float] = (0.0, 5.0)
 
+    def draw(self, rng: np.random.Generator) -> dict[str, Any]:
+        return {"rotation_deg": _uniform(rng, self.rotation_deg), "translation_cm": _uniform(rng, self.translation_cm)}
+
 
 class MorphRange(_Applied):
     """``perturb.morph_masks``: masks dilated (> 0) or eroded (< 0) by a whole number of pixels, never 0."""
@@ -118,11 +143,18 @@ class MorphRange(_Applied):
     prob: Probability = 0.5
     px: tuple[int, int] = (-5, 5)
 
+    def draw(self, rng: np.random.Generator) -> dict[str, Any]:
+        values = [p for p in range(self.px[0], self.px[1] + 1) if p != 0]  # never 0: that would change nothing
+        return {"px": int(values[int(rng.integers(len(values)))])}
+
 
 class ShareRange(_Applied):
     """A share of masks (splits, drops) or touching pairs (merges) affected."""
 
     share: tuple[float, float] = (0.0, 0.1)
+
+    def draw(self, rng: np.random.Generator) -> dict[str, Any]:
+        return {"share": _uniform(rng, self.share)}
 
 
 class SpuriousRange(_Applied):
@@ -131,6 +163,11 @@ class SpuriousRange(_Applied):
     count: tuple[int, int] = (1, 6)
     radius_px: tuple[float, float] = (2.0, 8.0)
     on_rocks: tuple[float, float] = (0.0, 0.5)
+
+    def draw(self, rng: np.random.Generator) -> dict[str, Any]:
+        # The blobs' semi-axes are drawn in a sub-range of radius_px: some scenes have tiny blobs only.
+        lo, hi = sorted((_uniform(rng, self.radius_px), _uniform(rng, self.radius_px)))
+        return {"count": _integer(rng, self.count), "radius_px": [lo, hi], "on_rocks": _uniform(rng, self.on_rocks)}
 
 
 class PerturbationStep(_Frozen):
@@ -180,36 +217,10 @@ class PerturbationDistribution(_Frozen):
         for name in PERTURBATION_ORDER:
             spec = getattr(self, name)
             applied = rng.random() < spec.prob
-            args = _draw_args(name, spec, rng)
+            args = spec.draw(rng)
             if applied and not clean:
                 steps.append(PerturbationStep(name=name, args=args))
         return tuple(steps)
-
-
-def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
-    return float(rng.uniform(bounds[0], bounds[1]))
-
-
-def _integer(rng: np.random.Generator, bounds: tuple[int, int]) -> int:
-    return int(rng.integers(bounds[0], bounds[1] + 1))
-
-
-def _draw_args(name: str, spec: _Applied, rng: np.random.Generator) -> dict[str, Any]:
-    """Keyword arguments of ``perturb.<name>`` drawn from ``spec`` (always the same draws per kind)."""
-    if name == "depth_noise":
-        return {"fraction": _uniform(rng, spec.fraction)}
-    if name == "depth_holes":
-        return {"fraction": _uniform(rng, spec.fraction), "blob_px": _uniform(rng, spec.blob_px)}
-    if name == "pose_error":
-        return {"rotation_deg": _uniform(rng, spec.rotation_deg), "translation_cm": _uniform(rng, spec.translation_cm)}
-    if name == "morph_masks":
-        # A non-zero whole number of pixels: draw among the range's values other than 0.
-        values = [p for p in range(spec.px[0], spec.px[1] + 1) if p != 0]
-        return {"px": int(values[int(rng.integers(len(values)))])}
-    if name == "spurious_blobs":
-        lo, hi = sorted((_uniform(rng, spec.radius_px), _uniform(rng, spec.radius_px)))
-        return {"count": _integer(rng, spec.count), "radius_px": [lo, hi], "on_rocks": _uniform(rng, spec.on_rocks)}
-    return {"share": _uniform(rng, spec.share)}  # merge_touching, split_masks, drop_masks
 
 
 def apply_perturbations(bundle: SceneBundle, steps: tuple[PerturbationStep, ...],
@@ -221,12 +232,10 @@ def apply_perturbations(bundle: SceneBundle, steps: tuple[PerturbationStep, ...]
     from . import perturb
 
     root = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(int(seed))
-    streams = dict(zip(PERTURBATION_ORDER, root.spawn(len(PERTURBATION_ORDER))))
     for step in steps:
-        args = dict(step.args)
-        if "radius_px" in args:
-            args["radius_px"] = tuple(args["radius_px"])
-        bundle = getattr(perturb, step.name)(bundle, np.random.default_rng(streams[step.name]), **args)
+        # the k-th child of root, as root.spawn would make it, without spawn's counter (calls stay repeatable)
+        stream = np.random.SeedSequence(root.entropy, spawn_key=(*root.spawn_key, PERTURBATION_ORDER.index(step.name)))
+        bundle = getattr(perturb, step.name)(bundle, np.random.default_rng(stream), **step.args)
     return bundle
 
 
@@ -395,10 +404,6 @@ class FieldDistribution(_Frozen):
             mask_format=self.mask_format,
         )
         return FieldSample(config=config, perturbations=self.perturbations.sample(rng))
-
-
-def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
-    return float(math.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1]))))
 
 
 # --------------------------------------------------------------------------- generation
