@@ -32,6 +32,13 @@ Two ways to resolve the evidence, one per method:
     :func:`split_mask_ids`: two masks of one view whose segments land together on one
     segment in several other views count as one (split) mask.
 
+Before grouping, segments that look like one mask drawn over two objects are found
+(:func:`merged_mask_segments`: the segment spreads over two segments of another view that
+both land back on it and that a third view sees apart), and landings *on* them are taken
+out of the evidence (:func:`without_landings_on`): everything under a merged mask lands on
+it, so those landings would chain its two objects together.  Its own landings stay, so the
+merged mask still joins the object most of it lands on.
+
 Each segment's ``confidence`` compares how strongly it is linked to its own group with the
 strongest alternative (another group, or standing alone); see :func:`segment_confidence`.
 
