@@ -135,8 +135,9 @@ def _guarded(what: str, fn, *args):
         return fn(*args)
     except JobError:
         raise
-    except SceneLimitError as e:  # too many segments or voxels: refused before the heavy stages
-        code = {"max_segments": "too_many_segments", "max_voxels": "too_many_voxels"}.get(e.limit, "scene_too_large")
+    except SceneLimitError as e:  # too many segments or voxels, or a stage too slow: refused before the next stage
+        code = {"max_segments": "too_many_segments", "max_voxels": "too_many_voxels",
+                "max_stage_seconds": "stage_too_slow"}.get(e.limit, "scene_too_large")
         raise JobError(413, code, str(e), [{"loc": "scene", "msg": str(e)}]) from None
     except DepthRangeError as e:  # nearly every segment lost its depth: wrong units or max_depth
         raise JobError(422, "no_valid_depth", str(e), [{"loc": "manifest.units", "msg": str(e)}]) from None

@@ -60,7 +60,7 @@ class Runtime:
         self.settings = settings
         self.metrics = metrics or ServiceMetrics()
         self.limits = RequestLimits.from_settings(settings)
-        self.base_config = ShadowCorrConfig()
+        self.base_config = ShadowCorrConfig(max_stage_seconds=settings.max_stage_seconds)
         self.started_at = time.monotonic()
         self.model: Model | None = None
         self.model_info: ModelInfo | None = None
@@ -205,6 +205,7 @@ class Runtime:
                 "max_upload_bytes_in_flight": s.max_upload_bytes_in_flight,
                 "queue_size": s.queue_size,
                 "request_timeout_s": s.request_timeout_s,
+                "max_stage_seconds": s.max_stage_seconds,
             },
             "batching": {"max_batch_size": s.max_batch_size, "max_wait_ms": s.max_wait_ms},
             "request_options": {

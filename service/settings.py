@@ -45,6 +45,8 @@ class ServiceSettings(BaseSettings):
         16, ge=1, description="requests one client address may have admitted at once; more get 429"
     )
     request_timeout_s: float = Field(120.0, gt=0, description="a request not finished after this gets 504")
+    max_stage_seconds: float = Field(30.0, gt=0, description="a scene whose one stage of prepare or assign ran longer "
+                                     "than this is refused (413 stage_too_slow) before its next stage starts")
     retry_after_s: int = Field(2, ge=0, description="Retry-After sent with 503 responses")
     graceful_shutdown_s: float = Field(30.0, ge=0, description="on SIGTERM, how long in-flight requests may finish")
     startup_timeout_s: float = Field(600.0, gt=0, description="longest a worker process may take to start and warm up")
@@ -73,9 +75,9 @@ class ServiceSettings(BaseSettings):
     max_files: int = Field(64, ge=1, description="files in an archive / file parts in an upload")
     max_views: int = Field(16, ge=1, description="views per scene")
     max_pixels_per_view: int = Field(4096 * 4096, ge=1, description="width x height of one view")
-    # prepare's cost grows faster than linearly with the segments (segment embeddings: 2 s
-    # at 200 segments, 19 s at 400, 53 s at 800 on one busy core), so this bound is what
-    # keeps a cheap upload from holding a worker for minutes.
+    # prepare's cost grows about linearly with the segments (about 2,000 segments in 17 s on one
+    # core, benchmarks/bench_scale.py); this bound, max_scene_points and max_stage_seconds keep a
+    # cheap upload from holding a worker for long.
     max_segments: int = Field(500, ge=1, description="segments per scene (counted from the masks before prepare)")
     max_scene_points: int = Field(
         8_000_000, ge=1, description="instance pixels with valid depth in all views (the points prepare back-projects)"

@@ -49,6 +49,9 @@ class ShadowCorrConfig(BaseModel):
     max_segments: int = Field(5000, ge=1, description="refuse a scene with more segments (checked once they are cut)")
     max_voxels: int = Field(2_000_000, ge=1, description="refuse a scene with more consensus voxels (checked after "
                             "the consensus filter, before segment embeddings and the network)")
+    max_stage_seconds: float | None = Field(None, gt=0, description="refuse a scene once one stage has run longer "
+                                            "than this (wall seconds, checked as each stage ends, so the next one "
+                                            "never starts); None: no time limit")
     max_depth: float = Field(2000.0, gt=0, description="depth beyond this is invalid (units)")
 
     subsample_pixels: bool = Field(True, description="back-project only every k-th pixel per axis, k as many "

@@ -93,16 +93,22 @@ class DepthRangeError(ValueError):
 
 
 class SceneLimitError(ValueError):
-    """A scene exceeds one of the configured size limits (``max_segments``, ``max_voxels``).
+    """A scene exceeds one of the configured limits (``max_segments``, ``max_voxels``,
+    ``max_stage_seconds``).
 
     Raised right after the measured quantity is known and before the heavy stages that
     scale with it.  ``limit`` names the configuration field, ``value`` is what the scene
-    has and ``maximum`` what the field allows.
+    has and ``maximum`` what the field allows; ``what`` says what was measured when the
+    field's name does not (e.g. which stage ran too long).
     """
 
-    def __init__(self, limit: str, value: int, maximum: int) -> None:
-        self.limit, self.value, self.maximum = limit, int(value), int(maximum)
-        super().__init__(f"the scene exceeds {limit} = {self.maximum}: it has {self.value}")
+    def __init__(self, limit: str, value: float, maximum: float, what: str | None = None) -> None:
+        self.limit, self.value, self.maximum, self.what = limit, value, maximum, what
+        def text(x: float) -> str:
+            return f"{x:.3g}" if isinstance(x, float) else str(x)
+
+        measured = f"{what}: {text(value)}" if what else f"it has {text(value)}"
+        super().__init__(f"the scene exceeds {limit} = {text(maximum)}: {measured}")
 
 
 def _join(prefix: str, loc: str) -> str:

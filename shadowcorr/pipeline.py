@@ -35,6 +35,19 @@ def _ms_since(t0: float) -> float:
     return (time.perf_counter() - t0) * 1e3
 
 
+def _check_stage_time(timings: dict[str, float], config: ShadowCorrConfig) -> None:
+    """Raise :class:`SceneLimitError` when a stage timed so far ran beyond ``max_stage_seconds``.
+
+    Called as each stage ends, so the scene is refused before its next stage starts.
+    """
+    if config.max_stage_seconds is None or not timings:
+        return
+    stage = max(timings, key=timings.get)
+    if timings[stage] > config.max_stage_seconds * 1e3:
+        raise SceneLimitError("max_stage_seconds", round(timings[stage] / 1e3, 3), config.max_stage_seconds,
+                              f"seconds in stage {stage!r}")
+
+
 def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> VoxelScene:
     """Pose refinement (when asked for), segments, then the evidence the configured method reads.
 
@@ -49,6 +62,7 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
         t0 = time.perf_counter()
         bundle, poses = refine_poses(bundle, config)
         timings["poses"] = _ms_since(t0)
+        _check_stage_time(timings, config)
     t0 = time.perf_counter()  # 02
     segments = extract_segments(bundle, config)
     if segments.num_segments == 0:
@@ -60,11 +74,13 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
         raise SceneLimitError("max_segments", segments.num_segments, config.max_segments)
     depth_warnings = check_valid_depth(segments, bundle.units, config)  # DepthRangeError when nearly all are empty
     timings["segments"] = _ms_since(t0)
+    _check_stage_time(timings, config)
     surface = None
     if config.method in SURFACE_METHODS:  # 03
         t0 = time.perf_counter()
         surface = surface_evidence(bundle, segments, config)
         timings["surface_evidence"] = _ms_since(t0)
+        _check_stage_time(timings, config)
     segments.pixel_segment = None  # the label images serve the surface evidence only: free them now
     if config.method == "projection":
         shells, shadows = raw_shells(segments), ShadowVoxels.empty()
@@ -72,12 +88,15 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
         t0 = time.perf_counter()  # 04
         shells = segment_shells(segments, config)
         timings["shells"] = _ms_since(t0)
+        _check_stage_time(timings, config)
         t0 = time.perf_counter()  # 05
         shadows = cast_shadows(segments, shells, config)
         timings["shadows"] = _ms_since(t0)
+        _check_stage_time(timings, config)
     scene = build_voxel_scene(  # 06
         bundle.name, bundle.units, unit_scale(bundle.units, config.units), segments, shells, shadows, config, timings
     )
+    _check_stage_time(timings, config)  # consensus, segment embeddings, features
     scene.surface = surface
     scene.poses = poses
     # Segments without depth first: they say the most about whether the result can be trusted.
@@ -100,7 +119,7 @@ def assign(
 
     ``config`` defaults to the configuration the scene was prepared with; only its
     grouping and clustering fields (``method``, ``bandwidth``, ``baseline_bandwidth``,
-    ``min_cluster_size``, ``orphan_max_gap``, ``fusion_*``) matter here.  Metrics are added
+    ``min_cluster_size``, ``orphan_max_gap``, ``fusion_*``) and ``max_stage_seconds`` matter here.  Metrics are added
     when ``metrics`` is true and the scene carries ground truth.
     """
     config = config or scene.config
@@ -110,11 +129,13 @@ def assign(
         seg_label, support = group_by_evidence(scene, embeddings, config)
         voxel_label, how = evidence_labels(scene, seg_label)
         timings["grouping"] = _ms_since(t0)
+        _check_stage_time(timings, config)
         t0 = time.perf_counter()
     else:  # 09: MeanShift on the voxel embeddings -> 10: a vote per segment
         bandwidth = config.bandwidth if config.method == "shadowcorr" else config.baseline_bandwidth
         voxel_label = cluster_voxels(np.asarray(embeddings), bandwidth, config.min_cluster_size)
         timings["clustering"] = _ms_since(t0)
+        _check_stage_time(timings, config)
         t0 = time.perf_counter()
         seg_label, support, how = vote(scene, voxel_label, config.orphan_max_gap)
     seg_object, voxel_object, num_objects = number_objects(seg_label, voxel_label)  # 10
@@ -164,4 +185,5 @@ def correspond(
     t0 = time.perf_counter()
     (embeddings,) = embed(model, [scene])
     scene.timings_ms["network"] = _ms_since(t0)
+    _check_stage_time(scene.timings_ms, config)
     return assign(scene, embeddings, config, model=model_info(model), metrics=metrics)

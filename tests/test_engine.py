@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle, View
 from shadowcorr.errors import DepthRangeError
 from shadowcorr.stages import (
-    beta_profile, cast_shadows, cooccurrence, extract_segments, segment_embedding_loss, segment_shells,
+    beta_profile, cast_shadows, cooccurrence, extract_segments, find_blobs, segment_embedding_loss, segment_shells,
     train_segment_embeddings, voxel_downsample,
 )
+
+from shadowcorr.ops import segment_chunks
 
 from .paths import REFERENCE_CHECKPOINT as REFERENCE
 from .paths import SAMPLE_DIR as SAMPLE
@@ -69,6 +72,37 @@ def test_segments_split_components_and_ignore_small_blobs():
     assert merged.instance.tolist() == [3, 5] and merged.lengths[0] == 1200 + 900 + 25
 
 
+@pytest.mark.parametrize("id_scale", [1, 1 << 24])  # small ids, and sparse large ones (renumbered)
+def test_blob_image_matches_labelling_each_instance_over_the_whole_frame(id_scale):
+    rng = np.random.default_rng(5)
+    mask = np.zeros((60, 90), np.int64)
+    for value in range(1, 9):  # random rectangles, some on the frame's edges, overlapping
+        r, c = rng.integers(0, 55), rng.integers(0, 85)
+        mask[r : r + rng.integers(3, 20), c : c + rng.integers(3, 25)] = value
+    mask[:, 0] = 9  # a column on the left edge, a row on the bottom edge
+    mask[-1, 30:] = 9
+    mask = (mask * id_scale).astype(np.int64)
+    blobs = find_blobs(mask, True, 5, first_index=7)
+    # Reference: every instance labelled over the whole frame, blobs largest first.
+    expected = np.full(mask.shape, -1)
+    index, lengths = 7, []
+    for value in np.unique(mask[mask > 0]):
+        labels, n = ndimage.label(mask == value, structure=np.ones((3, 3), bool))
+        counts = np.bincount(labels.ravel())[1:]
+        for lab in np.argsort(-counts, kind="stable"):
+            if counts[lab] >= 5:
+                expected[labels == lab + 1] = index
+                index, lengths = index + 1, lengths + [counts[lab]]
+    np.testing.assert_array_equal(blobs.labels, expected)
+    assert blobs.labels.dtype == np.int16 and blobs.lengths.tolist() == lengths
+    r0, r1, c0, c1 = blobs.bounds
+    inside = np.zeros(mask.shape, bool)
+    inside[r0:r1, c0:c1] = True
+    assert (blobs.labels[~inside] == -1).all() and (r0, r1, c0, c1) == (0, 60, 0, 90)
+    empty = find_blobs(np.zeros((4, 5), np.int32))
+    assert empty.lengths.size == 0 and (empty.labels == -1).all() and empty.labels.shape == (4, 5)
+
+
 def test_pixel_subsampling_keeps_the_downsample_cells_of_nearly_every_point():
     bundle = sphere_scene([[0, 0, 0]], [50], cameras=2, width=1920, height_px=1080)  # 0.5 cm per pixel
     exact = ShadowCorrConfig(subsample_pixels=False)
@@ -98,6 +132,37 @@ def test_shadows_fill_the_interior():
     # Voxels reach well behind the visible shell, into the sphere's interior.
     assert np.linalg.norm(centres, axis=1).min() < 30
     assert np.all(shadows.confidence > cfg.min_confidence)
+
+
+def test_shadows_and_outliers_in_small_chunks_equal_one_pass(monkeypatch):
+    import shadowcorr.stages._04_shells as shells_mod
+    import shadowcorr.stages._05_shadows as shadows_mod
+
+    bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII)
+    cfg = ShadowCorrConfig()
+    seg = extract_segments(bundle, cfg)
+    shells = segment_shells(seg, cfg)
+    whole = cast_shadows(seg, shells, cfg)
+    # Chunks of about one segment's worth of rows: many chunks, whole segments each.
+    monkeypatch.setattr(shadows_mod, "_CHUNK_LAYER_POINTS", 500)
+    monkeypatch.setattr(shells_mod, "_CHUNK_POINTS", 100)
+    assert len(segment_chunks(shells.segment, 500, weight=np.full(shells.segment.size, 3))) > 5
+    chunked_shells = segment_shells(seg, cfg)
+    np.testing.assert_array_equal(chunked_shells.points, shells.points)
+    chunked = cast_shadows(seg, chunked_shells, cfg)
+    for name in ("segment", "cell", "confidence"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
+
+
+def test_segment_chunks_hold_whole_segments_of_about_the_asked_weight():
+    segment = np.repeat(np.arange(6), [3, 1, 4, 2, 5, 1])
+    weight = np.arange(segment.size) % 3 + 1
+    chunks = segment_chunks(segment, 6, weight=weight)
+    assert chunks[0][0] == 0 and chunks[-1][1] == segment.size
+    assert all(a[1] == b[0] for a, b in zip(chunks, chunks[1:]))
+    for lo, hi in chunks:  # never splits a segment
+        assert (lo == 0 or segment[lo] != segment[lo - 1]) and (hi == segment.size or segment[hi] != segment[hi - 1])
+    assert len(chunks) >= 3 and segment_chunks(segment[:0], 6) == []
 
 
 # A small "rock field" of spheres in the reference data's size range; spheres 1 and 2 touch.

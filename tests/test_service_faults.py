@@ -358,3 +358,15 @@ def test_shutdown_answers_json_503_to_what_cannot_finish(server, slow_parts, tin
     assert server.proc.wait(60) in (0, -signal.SIGTERM)
     assert "Application shutdown complete" in server.log_tail()
     assert "Traceback" not in server.log_tail(400)
+
+
+def test_a_stage_over_its_time_budget_is_refused_and_the_server_keeps_serving(tiny):
+    # A budget no stage can meet: every scene is refused after its first stage, with a 413
+    # naming the limit and the stage; the worker stays up and /health stays ready.
+    zipped, _, _ = tiny
+    with ServerProcess(["--workers", "1", "--max-wait-ms", "0"], env={"SHADOWCORR_MAX_STAGE_SECONDS": "1e-6"}) as srv:
+        for _ in range(2):
+            r = httpx.post(srv.url + "/correspond", files={"bundle": ("s.zip", zipped)}, timeout=60)
+            assert r.status_code == 413 and _is_error(r.json(), "stage_too_slow"), r.text
+            assert "max_stage_seconds" in r.json()["message"] and "stage '" in r.json()["message"]
+        assert _health(srv)["status"] == "ok"

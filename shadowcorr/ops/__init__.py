@@ -6,6 +6,7 @@ the number of segments given explicitly (segments may be empty):
 - :func:`pack_cell_keys`, :func:`unique_keys` - (segment, voxel cell) pairs packed into one
   sortable int64 key, and their unique values;
 - :func:`segment_max`, :func:`segment_min`, :func:`segment_range` - per-segment reductions;
+- :func:`segment_chunks` - row ranges of whole segments, to bound the memory of expansions;
 - :func:`separation_gap`, :func:`separated` - segments moved apart so that one k-d tree
   answers per-segment neighbour queries.
 """
@@ -13,10 +14,11 @@ the number of segments given explicitly (segments may be empty):
 from __future__ import annotations
 
 from ._grid_keys import pack_cell_keys, unique_keys
+from ._segment_chunks import segment_chunks
 from ._segment_reduce import segment_max, segment_min, segment_range, segment_starts
 from ._segment_separation import separated, separation_gap
 
 __all__ = [
-    "pack_cell_keys", "segment_max", "segment_min", "segment_range", "segment_starts", "separated",
+    "pack_cell_keys", "segment_chunks", "segment_max", "segment_min", "segment_range", "segment_starts", "separated",
     "separation_gap", "unique_keys",
 ]

@@ -2,24 +2,31 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 
-def pack_cell_keys(group: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, callable]:
+def pack_cell_keys(group: np.ndarray, cells: np.ndarray | Sequence[np.ndarray]) -> tuple[np.ndarray, callable]:
     """Pack ``(group, cells[:, 0], cells[:, 1], cells[:, 2])`` into one int64 per row.
+
+    ``cells`` is an (N, 3) integer array or its three columns as 1-D arrays (which saves
+    stacking them when they were computed axis by axis).
 
     Sorting the keys sorts by group first, then x, y, z.  Returns the keys and a function
     that unpacks keys back into ``(group, cells)``.  Raises ``ValueError`` if the ranges do
     not fit 63 bits (a scene of about a million cells per axis and group count combined).
     """
     group = np.asarray(group, dtype=np.int64)
-    cells = np.asarray(cells, dtype=np.int64)
-    if cells.shape[0] == 0:
-        lo = np.zeros(3, dtype=np.int64)
-        return np.zeros(0, dtype=np.int64), _unpacker(lo, [1, 1, 1])
     # Column by column: reductions and shifts on contiguous 1-D arrays are several times
     # faster than along axis 0 of an (N, 3) array.
-    cols = [np.ascontiguousarray(cells[:, i]) for i in range(3)]
+    if isinstance(cells, np.ndarray):
+        cols = [np.ascontiguousarray(cells[:, i], dtype=np.int64) for i in range(3)]
+    else:
+        cols = [np.asarray(c, dtype=np.int64) for c in cells]
+    if cols[0].shape[0] == 0:
+        lo = np.zeros(3, dtype=np.int64)
+        return np.zeros(0, dtype=np.int64), _unpacker(lo, [1, 1, 1])
     lo = np.array([c.min() for c in cols], dtype=np.int64)
     span = [int(c.max()) - int(m) + 1 for c, m in zip(cols, lo)]
     bits = [max(int(s - 1).bit_length(), 1) for s in span]
@@ -49,14 +56,23 @@ def unique_keys(keys: np.ndarray, return_inverse: bool = False):
     """Sorted unique int64 keys (and optionally the inverse map), by sorting.
 
     NumPy >= 2.3 answers ``np.unique`` on integers with a hash table, which is many
-    times slower than one sort when most of a million keys are distinct.
+    times slower than one sort when most of a million keys are distinct.  For the inverse,
+    non-negative keys with room to spare carry their row number in their low bits, so one
+    value sort (SIMD) replaces an argsort: about half the time for 300k keys.
     """
     if not return_inverse:
         s = np.sort(keys)
         return s[np.r_[True, s[1:] != s[:-1]]] if s.size else s
-    order = np.argsort(keys)
-    s = keys[order]
+    n = keys.size
+    row_bits = max(int(n - 1).bit_length(), 1)
+    if n and int(keys.min()) >= 0 and int(keys.max()) < 1 << (63 - row_bits):
+        packed = np.sort((keys << row_bits) | np.arange(n, dtype=np.int64))
+        order = packed & ((1 << row_bits) - 1)
+        s = packed >> row_bits
+    else:
+        order = np.argsort(keys)
+        s = keys[order]
     new = np.r_[True, s[1:] != s[:-1]] if s.size else np.zeros(0, dtype=bool)
-    inverse = np.empty(keys.size, dtype=np.int64)
+    inverse = np.empty(n, dtype=np.int64)
     inverse[order] = np.cumsum(new) - 1
     return s[new], inverse

@@ -26,6 +26,34 @@ _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
 
 @dataclass
+class SegmentImage:
+    """A view's image of segment indices (-1: no segment), kept as the window of the frame that
+    holds every segment pixel: a quarter of the sample scene's frame, and int16 while the
+    indices fit (see :attr:`Blobs.labels`), which is what bounds a large field's memory."""
+
+    window: np.ndarray  # (h, w) segment index per pixel of the window
+    top: int  # the window's first row and column in the frame
+    left: int
+    shape: tuple[int, int]  # the whole frame (H, W)
+
+    @classmethod
+    def from_blobs(cls, blobs: "Blobs") -> "SegmentImage":
+        r0, r1, c0, c1 = blobs.bounds
+        return cls(blobs.labels[r0:r1, c0:c1].copy(), r0, c0, blobs.labels.shape)
+
+    def at(self, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+        """Segment index at frame pixels (``row``, ``col``) inside the frame; -1 off the window."""
+        r, c = row - self.top, col - self.left
+        h, w = self.window.shape
+        off = (r < 0) | (r >= h) | (c < 0) | (c >= w)
+        if h == 0 or w == 0:
+            return np.full(np.shape(row), -1, dtype=np.int64)
+        found = self.window.ravel()[np.clip(r, 0, h - 1) * w + np.clip(c, 0, w - 1)].astype(np.int64)
+        found[off] = -1
+        return found
+
+
+@dataclass
 class Segments:
     """Ragged batch of segments. Lengths in the configuration's units, world frame."""
 
@@ -39,10 +67,9 @@ class Segments:
     optical_axis: np.ndarray  # (S, 3) float64, unit vector
     view_names: list[str]
     truth: np.ndarray | None = None  # (S,) int64 ground-truth object per segment, metrics only
-    # Per view: (H, W) image of the segment index on each pixel (-1: no segment), for the
-    # cross-view surface evidence: int16 while the indices fit (half the memory of a large
-    # field's label images), else int32.  None for views without images (point flavour).
-    pixel_segment: list[np.ndarray | None] | None = None
+    # Per view: the segment index on each pixel, for the cross-view surface evidence.  None
+    # for views without images (point flavour).
+    pixel_segment: list[SegmentImage | None] | None = None
 
     @property
     def num_segments(self) -> int:
@@ -63,7 +90,8 @@ class Blobs:
     but the mask.
     """
 
-    labels: np.ndarray  # (H, W) int32 first_index + blob index on each pixel, -1 outside every blob
+    labels: np.ndarray  # (H, W) first_index + blob index on each pixel, -1 outside every blob; int16 while
+    # every index the mask could produce fits (at most its foreground pixels / min_pixels blobs), else int32
     lengths: np.ndarray  # (B,) pixels per blob
     instance: np.ndarray  # (B,) mask value
     component: np.ndarray  # (B,) index within its instance, largest first
@@ -84,17 +112,28 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
     each instance is scanned, never the whole image per instance.  The label image numbers
     the blobs from ``first_index`` (the index of the view's first segment in a scene).
     """
-    values = mask
-    if mask.size and int(mask.max()) >= 1 << 20:  # sparse large ids: renumber before find_objects
-        ids, inverse = np.unique(mask, return_inverse=True)
-        values = inverse.reshape(mask.shape) + (0 if ids[0] == 0 else 1)
+    # Only the bounding box of the foreground is scanned (a quarter of the sample scene's frame).
+    foreground = mask > 0
+    fg_rows, fg_cols = np.flatnonzero(foreground.any(axis=1)), np.flatnonzero(foreground.any(axis=0))
+    # int16 indices while every index this mask can produce fits: half the memory of int32.
+    most_blobs = int(np.count_nonzero(foreground)) // max(min_pixels, 1)
+    image = np.full(mask.shape, -1, dtype=np.int16 if first_index + most_blobs < 1 << 15 else np.int32)
+    if fg_rows.size == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return Blobs(image, empty, empty, empty)
+    top, left = int(fg_rows[0]), int(fg_cols[0])
+    crop = mask[top : fg_rows[-1] + 1, left : fg_cols[-1] + 1]
+    image_crop = image[top : fg_rows[-1] + 1, left : fg_cols[-1] + 1]
+    values = crop
+    if int(crop.max()) >= 1 << 20:  # sparse large ids: renumber before find_objects
+        ids, inverse = np.unique(crop, return_inverse=True)
+        values = inverse.reshape(crop.shape) + (0 if ids[0] == 0 else 1)
         ids = ids if ids[0] == 0 else np.r_[0, ids]
     else:
-        ids = np.arange(int(mask.max(initial=0)) + 1)
-    image = np.full(mask.shape, -1, dtype=np.int32)
+        ids = np.arange(int(crop.max()) + 1)
     lengths, instances, components = [], [], []
     first = first_index
-    r0, r1, c0, c1 = mask.shape[0], 0, mask.shape[1], 0
+    r0, r1, c0, c1 = crop.shape[0], 0, crop.shape[1], 0
     for label, window in enumerate(ndimage.find_objects(values), start=1):  # per instance value, not per pixel
         if window is None:
             continue
@@ -108,10 +147,10 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
         keep = order[counts[order] >= max(min_pixels, 1)]
         if keep.size == 0:
             continue
-        blob_of_label = np.full(n + 1, -1, dtype=np.int32)
+        blob_of_label = np.full(n + 1, -1, dtype=image.dtype)
         blob_of_label[keep + 1] = np.arange(first, first + keep.size)
         # Windows of different instances overlap; each writes only its own instance's pixels.
-        image[window][sub] = blob_of_label[labels[sub]]
+        image_crop[window][sub] = blob_of_label[labels[sub]]
         r0, r1 = min(r0, window[0].start), max(r1, window[0].stop)
         c0, c1 = min(c0, window[1].start), max(c1, window[1].stop)
         first += keep.size
@@ -122,7 +161,7 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
         empty = np.zeros(0, dtype=np.int64)
         return Blobs(image, empty, empty, empty)
     return Blobs(image, np.concatenate(lengths).astype(np.int64), np.concatenate(instances),
-                 np.concatenate(components), (r0, r1, c0, c1))
+                 np.concatenate(components), (r0 + top, r1 + top, c0 + left, c1 + left))
 
 
 def back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -167,8 +206,7 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
     for vi, view in enumerate(bundle.views):
         blobs = find_blobs(view.mask, config.split_components, config.min_blob_pixels, first_index=first_segment)
         first_segment += blobs.lengths.size
-        fits = first_segment <= np.iinfo(np.int16).max
-        pixel_segment.append(blobs.labels.astype(np.int16) if fits else blobs.labels)
+        pixel_segment.append(SegmentImage.from_blobs(blobs))
         if blobs.lengths.size == 0:
             continue
         # Back-project the pixels of a stride x stride grid, blob after blob, in raster order.
@@ -179,14 +217,17 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         on_grid = blobs.labels[r0:r1:stride, c0:c1:stride]
         depth = view.depth[r0:r1:stride, c0:c1:stride]
         chosen = (on_grid >= 0) & np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle)
-        rows, cols = np.nonzero(chosen)
-        blob_of_pixel = on_grid[rows, cols] - (first_segment - blobs.lengths.size)
+        on_grid_pixel = np.flatnonzero(chosen)
+        # Grouped by blob, raster order within a blob: a stable sort, radix on int16 indices.
+        blob_of_pixel = on_grid.ravel()[on_grid_pixel] - (first_segment - blobs.lengths.size)
         by_blob = np.argsort(blob_of_pixel, kind="stable")
-        rows, cols, blob_of_pixel = rows[by_blob] * stride + r0, cols[by_blob] * stride + c0, blob_of_pixel[by_blob]
+        blob_of_pixel = blob_of_pixel[by_blob]
+        rows, cols = np.divmod(on_grid_pixel[by_blob], chosen.shape[1])
+        rows, cols = rows * stride + r0, cols * stride + c0
         d = view.depth[rows, cols]
         pts = back_project(view, rows.astype(np.float64), cols.astype(np.float64), d.astype(np.float64))
         inst, comp, sizes = blobs.instance, blobs.component, blobs.lengths
-        points.append(pts * scale)
+        points.append(pts * scale if scale != 1.0 else pts)
         lengths.append(np.bincount(blob_of_pixel, minlength=inst.size))
         view_idx.append(np.full(inst.size, vi))
         instances.append(inst)

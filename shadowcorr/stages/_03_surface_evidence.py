@@ -27,6 +27,7 @@ so a large field costs what its overlapping views cost, not ``points x views``.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +35,7 @@ import numpy as np
 from ..bundle import SceneBundle, unit_scale
 from ..config import ShadowCorrConfig
 from ..ops import segment_max
-from ._02_segments import Segments
+from ._02_segments import SegmentImage, Segments
 
 
 @dataclass
@@ -89,17 +90,22 @@ def _frustum_candidates(centre: np.ndarray, radius: np.ndarray, rotation: np.nda
     return np.all(c @ planes.T >= -radius[:, None], axis=1)
 
 
+@functools.lru_cache(maxsize=8)
 def _ring_offsets(radius: int) -> np.ndarray:
-    """(K, 2) pixel offsets within ``radius`` (Euclidean), nearest first, the centre left out."""
+    """(K, 2) pixel offsets within ``radius`` (Euclidean), nearest first, the centre left out
+    (cached: the same few radii for every view; read-only)."""
     r = np.arange(-radius, radius + 1)
     dy, dx = np.meshgrid(r, r, indexing="ij")
     d2 = (dy * dy + dx * dx).ravel()
     keep = (d2 > 0) & (d2 <= radius * radius)
     order = np.argsort(d2[keep], kind="stable")
-    return np.stack([dy.ravel()[keep][order], dx.ravel()[keep][order]], axis=1)
+    offsets = np.stack([dy.ravel()[keep][order], dx.ravel()[keep][order]], axis=1)
+    offsets.flags.writeable = False
+    return offsets
 
 
-def _nearest_label(labels: np.ndarray, flat: np.ndarray, target: np.ndarray, radius: int) -> np.ndarray:
+def _nearest_label(image: SegmentImage, row: np.ndarray, col: np.ndarray, target: np.ndarray, radius: int
+                   ) -> np.ndarray:
     """Points on a pixel of no segment take the nearest segment within ``radius`` pixels, if any.
 
     A 2D segmenter's masks stop short of the object's outline (eroded masks): a point
@@ -108,12 +114,11 @@ def _nearest_label(labels: np.ndarray, flat: np.ndarray, target: np.ndarray, rad
     off = np.flatnonzero(target < 0)
     if off.size == 0:
         return target
-    height, width = labels.shape
-    row, col = np.divmod(flat[off], width)
+    height, width = image.shape
     offsets = _ring_offsets(radius)
-    rr = np.clip(row[:, None] + offsets[None, :, 0], 0, height - 1)
-    cc = np.clip(col[:, None] + offsets[None, :, 1], 0, width - 1)
-    near = labels[rr, cc]
+    rr = np.clip(row[off, None] + offsets[None, :, 0], 0, height - 1)
+    cc = np.clip(col[off, None] + offsets[None, :, 1], 0, width - 1)
+    near = image.at(rr, cc)
     found = near >= 0
     first = np.argmax(found, axis=1)
     hit = found[np.arange(off.size), first]
@@ -129,24 +134,26 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         return SurfaceEvidence.empty(s, num_views)
     scale = unit_scale(bundle.units, config.units)
     index, samples = sample_segment_points(segments.points, segments.lengths, config.projection_samples)
-    pts = segments.points[index]
+    # The sample as three coordinate columns: gathers, masks and the rotation below run on
+    # contiguous 1-D arrays, several times faster than on (N, 3) rows.
+    xyz = [segments.points[index, i] for i in range(3)]
     seg = np.repeat(np.arange(s), samples)
     first = np.cumsum(samples) - samples
 
     # Bounding sphere of each segment's sample, for the frustum test.
-    safe = np.maximum(samples, 1)[:, None]
-    centre = np.stack([np.bincount(seg, weights=pts[:, i], minlength=s) for i in range(3)], axis=1) / safe
-    radius = segment_max(np.linalg.norm(pts - centre[seg], axis=1), seg, s)
+    safe = np.maximum(samples, 1)
+    centre = np.stack([np.bincount(seg, weights=c, minlength=s) / safe for c in xyz], axis=1)
+    radius = segment_max(np.sqrt(sum((c - centre[seg, i]) ** 2 for i, c in enumerate(xyz))), seg, s)
 
     visible = np.zeros((s, num_views), dtype=np.int64)
     on_mask = np.zeros((s, num_views), dtype=np.int64)
     keys, counts = [], []
     for j, view in enumerate(bundle.views):  # per view, vectorised over all points
-        labels = segments.pixel_segment[j]
-        if labels is None or view.depth is None:
+        image = segments.pixel_segment[j]
+        if image is None or view.depth is None:
             continue
         k = view.intrinsics
-        height, width = labels.shape
+        height, width = image.shape
         rotation, translation = view.pose[:3, :3], view.pose[:3, 3] * scale
         cand = _frustum_candidates(centre, radius, rotation, translation, k, width, height)
         cand &= (segments.view != j) & (samples > 0)
@@ -155,22 +162,23 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
             continue
         take = samples[cs]
         rows = np.repeat(first[cs], take) + (np.arange(take.sum()) - np.repeat(np.cumsum(take) - take, take))
-        cam = (pts[rows] - translation) @ rotation
-        z = cam[:, 2]
-        front = z > 1e-9
-        rows, cam, z = rows[front], cam[front], z[front]
-        col = np.rint(k.fx * cam[:, 0] / z + k.cx).astype(np.int64)
-        row = np.rint(k.fy * cam[:, 1] / z + k.cy).astype(np.int64)
+        # World -> camera: cam_i = sum_j (p_j - t_j) R_ji, column by column.
+        rel = [c[rows] - translation[i] for i, c in enumerate(xyz)]
+        x, y, z = (rel[0] * rotation[0, i] + rel[1] * rotation[1, i] + rel[2] * rotation[2, i] for i in range(3))
+        front = np.flatnonzero(z > 1e-9)
+        rows, x, y, z = rows[front], x[front], y[front], z[front]
+        col = np.rint(k.fx * x / z + k.cx).astype(np.int64)
+        row = np.rint(k.fy * y / z + k.cy).astype(np.int64)
         inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-        rows, z, flat = rows[inside], z[inside], (row * width + col)[inside]
-        depth = view.depth.ravel()[flat].astype(np.float64) * scale
+        rows, z, row, col = rows[inside], z[inside], row[inside], col[inside]
+        depth = view.depth.ravel()[row * width + col].astype(np.float64) * scale  # flat: 2x a 2-D gather
         tolerance = np.maximum(config.projection_depth_tolerance, config.projection_depth_tolerance_rel * z)
-        agree = np.isfinite(depth) & (depth > 0) & (np.abs(depth - z) <= tolerance)
-        rows, flat = rows[agree], flat[agree]
+        agree = np.flatnonzero(np.isfinite(depth) & (depth > 0) & (np.abs(depth - z) <= tolerance))
+        rows, row, col = rows[agree], row[agree], col[agree]
         src = seg[rows]
-        target = labels.ravel()[flat].astype(np.int64)
+        target = image.at(row, col)
         if config.pixel_tolerance > 0:
-            target = _nearest_label(labels, flat, target, config.pixel_tolerance)
+            target = _nearest_label(image, row, col, target, config.pixel_tolerance)
         visible[:, j] = np.bincount(src, minlength=s)
         landed = target >= 0
         on_mask[:, j] = np.bincount(src[landed], minlength=s)

@@ -88,14 +88,14 @@ def train_segment_embeddings(cooc: np.ndarray | csr_matrix, centroids: np.ndarra
     if config.segment_embedding_steps == 0 or cooc.nnz == 0:
         return z.astype(np.float32)
     w = _weights(cooc, config)
-    if config.segment_embedding_scope == "scene":
-        buckets = [np.arange(z.shape[0])[None]]
+    if config.segment_embedding_scope == "scene":  # one problem: every segment, one domain
+        batches = [(np.arange(z.shape[0])[None], np.zeros((1, z.shape[0]), dtype=np.int64))]
     else:
-        buckets = _component_buckets(cooc)
+        batches = _packed_components(cooc)
     pairs = w.tocoo()
-    slot = np.empty(z.shape[0], dtype=np.int64)  # a segment's problem within its bucket
+    slot = np.empty(z.shape[0], dtype=np.int64)  # a segment's problem within its batch
     local = np.empty(z.shape[0], dtype=np.int64)  # and its place in that problem
-    for members in buckets:  # (m, n) segment ids, -1 padding
+    for members, component in batches:  # (m, n) segment ids and their components, -1 padding
         valid = members >= 0
         slot[:] = -1
         slot[members[valid]] = np.nonzero(valid)[0]
@@ -105,43 +105,65 @@ def train_segment_embeddings(cooc: np.ndarray | csr_matrix, centroids: np.ndarra
         inside = slot[pairs.row] >= 0  # both ends of a pair lie in one problem
         a, b = pairs.row[inside], pairs.col[inside]
         wb[slot[a], local[a], local[b]] = pairs.data[inside]
-        zb = _train_batch(zb, wb, valid, config)
+        zb = _train_batch(zb, wb, component, config)
         z[members[valid]] = zb[valid]
     return z.astype(np.float32)
 
 
-#: Components up to this size share one bucket: padding them is cheaper than more Python steps.
-_SMALLEST_BUCKET = 8
+#: Components up to this size are packed together into problems as wide as the largest of
+#: them: each Adam step costs a fixed Python overhead per batch, which dominates small
+#: problems (the sample scene: 2 batches x 200 steps took 64 ms, one batch 30 ms).
+_PACK_WIDTH = 64
 
-def _component_buckets(cooc: csr_matrix) -> list[np.ndarray]:
-    """Connected components of the co-occurrence graph with two or more segments, grouped by
-    size into power-of-two buckets (all up to ``_SMALLEST_BUCKET`` in one): per bucket an
-    (m, n) array of segment ids padded with -1, n the bucket's largest component."""
+
+def _packed_components(cooc: csr_matrix) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Connected components of the co-occurrence graph with two or more segments, as batches
+    of problems: per batch an (m, n) array of segment ids and one of their components'
+    numbers within the problem, both -1 where padded.
+
+    Components are taken largest first into power-of-two size classes, every size up to
+    ``_PACK_WIDTH`` in one class; a class's problems are as wide as its largest component and
+    filled next-fit (a larger class holds one component per problem).
+    """
     _, comp = connected_components(cooc, directed=False)
     order = np.argsort(comp, kind="stable")
     starts = np.r_[0, np.flatnonzero(np.diff(comp[order])) + 1]
     sizes = np.diff(np.r_[starts, order.size])
-    keep = sizes >= 2
-    starts, sizes = starts[keep], sizes[keep]
-    bucket = np.ceil(np.log2(np.maximum(sizes, _SMALLEST_BUCKET))).astype(np.int64)
+    by_size = np.argsort(-sizes, kind="stable")
+    by_size = by_size[sizes[by_size] >= 2]
+    size_class = np.ceil(np.log2(np.maximum(sizes[by_size], _PACK_WIDTH))).astype(np.int64)
     out = []
-    for b in np.unique(bucket):
-        pick = np.flatnonzero(bucket == b)
-        width = int(sizes[pick].max())
-        members = np.full((pick.size, width), -1, dtype=np.int64)
-        col = np.arange(width)
-        mask = col[None, :] < sizes[pick][:, None]
-        members[mask] = order[(starts[pick][:, None] + col[None, :])[mask]]
-        out.append(members)
+    for c in np.unique(size_class):
+        picked = by_size[size_class == c]
+        width = int(sizes[picked[0]])
+        # Next fit: a problem's first free slot for each component (sequential, one step per
+        # component, not per point).
+        problem = np.empty(picked.size, dtype=np.int64)
+        offset = np.empty(picked.size, dtype=np.int64)
+        p, used = 0, 0
+        for i, size in enumerate(sizes[picked].tolist()):
+            if used + size > width:
+                p, used = p + 1, 0
+            problem[i], offset[i] = p, used
+            used += size
+        members = np.full((p + 1, width), -1, dtype=np.int64)
+        component = np.full((p + 1, width), -1, dtype=np.int64)
+        length = sizes[picked]
+        row = np.repeat(problem, length)
+        col = np.repeat(offset, length) + np.arange(length.sum()) - np.repeat(np.cumsum(length) - length, length)
+        members[row, col] = order[np.repeat(starts[picked], length) + (col - np.repeat(offset, length))]
+        component[row, col] = np.repeat(np.arange(picked.size), length)
+        out.append((members, component))
     return out
 
 
-def _train_batch(z: np.ndarray, weights: np.ndarray, valid: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
-    """Adam on a batch of independent problems.
+def _train_batch(z: np.ndarray, weights: np.ndarray, component: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
+    """Adam on a batch of problems, each holding one or more independent components.
 
     ``z``: (m, n, dim) start vectors (zeros where padded); ``weights``: (m, n, n) pair weights,
-    row a holding w_ab; ``valid``: (m, n) real segments.  A segment's row is in the loss when
-    it has a partner (a positive weight); each problem's loss is averaged over its own rows.
+    row a holding w_ab; ``component``: (m, n) the component of each slot, -1 where padded.  A
+    segment's row is in the loss when it has a partner (a positive weight); each component's
+    loss is averaged over its own rows, and its softmax denominators run over its own segments.
 
     With E = exp(s - 1 / tau) (1 / tau is every row's maximum: a vector's similarity with
     itself), p = E w / sum(E w) and q = E / sum(E) over the domain share one exponential; as
@@ -150,8 +172,10 @@ def _train_batch(z: np.ndarray, weights: np.ndarray, valid: np.ndarray, config: 
     """
     tau, lr = config.segment_embedding_tau, config.segment_embedding_lr
     row_ok = weights.sum(axis=-1) > 0
-    domain = (valid[:, None, :] & ~np.eye(valid.shape[1], dtype=bool)[None]).astype(np.float64)
-    row_scale = (row_ok / np.maximum(row_ok.sum(axis=1, keepdims=True), 1) / tau)[..., None]
+    same = (component[:, :, None] == component[:, None, :]) & (component >= 0)[:, :, None]
+    domain = (same & ~np.eye(component.shape[1], dtype=bool)[None]).astype(np.float64)
+    rows_in_component = np.einsum("mab,mb->ma", same.astype(np.float64), row_ok.astype(np.float64))
+    row_scale = (row_ok / np.maximum(rows_in_component, 1) / tau)[..., None]
     m = np.zeros_like(z)
     v = np.zeros_like(z)
     for step in range(1, config.segment_embedding_steps + 1):

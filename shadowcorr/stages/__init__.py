@@ -36,6 +36,7 @@ _EXPORTS = {
     # 02 segments
     "Segments": "_02_segments",
     "Blobs": "_02_segments",
+    "SegmentImage": "_02_segments",
     "find_blobs": "_02_segments",
     "back_project": "_02_segments",
     "extract_segments": "_02_segments",
@@ -95,7 +96,7 @@ __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._01_poses import pose_warnings, refine_poses
-    from ._02_segments import Blobs, Segments, back_project, check_valid_depth, extract_segments, find_blobs
+    from ._02_segments import Blobs, SegmentImage, Segments, back_project, check_valid_depth, extract_segments, find_blobs
     from ._03_surface_evidence import SurfaceEvidence, sample_segment_points, surface_evidence
     from ._04_shells import SegmentShells, raw_shells, remove_statistical_outliers, segment_shells, voxel_downsample
     from ._05_shadows import ShadowVoxels, beta_profile, cast_shadows
