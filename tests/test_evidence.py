@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle
@@ -222,6 +223,13 @@ def test_a_merged_mask_is_found_where_a_third_view_sees_its_objects_apart():
                         hit_target=surface.hit_target[seen], hit_count=surface.hit_count[seen])
     two_views.on_mask[:, 2] = 0
     assert not merged_mask_segments(two_views, view, instance, config).any()
+
+
+def test_merge_share_is_validated():
+    assert ShadowCorrConfig(fusion_merge_share=0).fusion_merge_share == 0
+    for bad in (-0.1, 0.6):  # two segments cannot each take more than half of the landings
+        with pytest.raises(ValidationError, match="fusion_merge_share"):
+            ShadowCorrConfig(fusion_merge_share=bad)
 
 
 def test_a_rock_split_in_one_view_is_not_a_merged_mask():
