@@ -141,6 +141,10 @@ class ShadowCorrConfig(BaseModel):
                                       "on a mask (see shadowcorr.stages.split_mask_ids)")
     fusion_split_cover: float = Field(0.1, gt=0, le=1, description="... while the segment they land on lands back on "
                                       "each of them with this share of its landings in their view")
+    fusion_merge_share: float = Field(0.25, ge=0, le=0.5, description="a segment whose landings in another view "
+                                      "split, at least this share on each, over two segments that both land mostly "
+                                      "on it and that a third view sees apart, is read as a merged mask: landings on "
+                                      "it are no evidence (see shadowcorr.stages.merged_mask_segments; 0: never)")
     fusion_threshold: float = Field(0.0, description="groups merge while their linkage exceeds this")
     fusion_confidence_slope: float = Field(4.0, gt=0, description="slope of the logistic turning a segment's "
                                            "linkage margin into its confidence")

@@ -6,12 +6,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle
 from shadowcorr.stages import (
-    SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, link_components, sample_segment_points,
-    segment_confidence, split_mask_ids, surface_evidence,
+    SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, link_components, merged_mask_segments,
+    sample_segment_points, segment_confidence, split_mask_ids, surface_evidence, without_landings_on,
 )
 
 from .scenes import sphere_scene
@@ -192,6 +193,91 @@ def test_halves_that_co_land_in_two_views_count_as_one_mask_and_a_merge_in_one_v
             (3, 0, n), (3, 2, n), (4, 1, n), (4, 2, n)]
     graph = _graph(view, instance, on_mask, hits)
     assert split_mask_ids(graph.surface, view, instance, config).tolist() == instance.tolist()
+
+
+def _merge_scene(n: int = 100):
+    """Rocks P and Q apart in views 0 and 2 (segments 0, 1 and 3, 4), one merged mask over both in view 1 (2)."""
+    view, instance = np.array([0, 0, 1, 2, 2]), np.array([1, 2, 1, 1, 2])
+    on_mask = [[0, n, n], [0, n, n], [2 * n, 0, 2 * n], [n, n, 0], [n, n, 0]]
+    hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 4, n), (2, 0, n), (2, 1, n), (2, 3, n), (2, 4, n),
+            (3, 0, n), (3, 2, n), (4, 1, n), (4, 2, n)]
+    return view, instance, _graph(view, instance, on_mask, hits).surface
+
+
+def test_a_merged_mask_is_found_where_a_third_view_sees_its_objects_apart():
+    view, instance, surface = _merge_scene()
+    config = ShadowCorrConfig(method="fused")
+    assert merged_mask_segments(surface, view, instance, config).tolist() == [False, False, True, False, False]
+    assert not merged_mask_segments(surface, view, instance, config.with_options(fusion_merge_share=0)).any()
+    # A segment that only grazes the second object (a tenth of its landings) is no merged mask.
+    grazing = surface.hit_count.copy()
+    grazing[(surface.hit_source == 2) & np.isin(surface.hit_target, [1, 4])] = 20
+    on_mask = surface.on_mask.copy()
+    on_mask[2] = [120, 0, 120]
+    grazed = replace(surface, on_mask=on_mask, hit_count=grazing)
+    assert not merged_mask_segments(grazed, view, instance, config).any()
+    # Without view 2 nothing tells the two segments of view 0 apart: one rock that view 0 cut in two
+    # would look the same, so nothing is flagged.
+    seen = ~np.isin(surface.hit_source, [3, 4]) & ~np.isin(surface.hit_target, [3, 4])
+    two_views = replace(surface, on_mask=surface.on_mask.copy(), hit_source=surface.hit_source[seen],
+                        hit_target=surface.hit_target[seen], hit_count=surface.hit_count[seen])
+    two_views.on_mask[:, 2] = 0
+    assert not merged_mask_segments(two_views, view, instance, config).any()
+
+
+def test_merge_share_is_validated():
+    assert ShadowCorrConfig(fusion_merge_share=0).fusion_merge_share == 0
+    for bad in (-0.1, 0.6):  # two segments cannot each take more than half of the landings
+        with pytest.raises(ValidationError, match="fusion_merge_share"):
+            ShadowCorrConfig(fusion_merge_share=bad)
+
+
+def test_a_rock_split_in_one_view_is_not_a_merged_mask():
+    # One rock: view 0 cut it in two (segments 0, 1); views 1 and 2 see it whole (2, 3) and the
+    # halves land together on it in both.
+    view, instance = np.array([0, 0, 1, 2]), np.array([1, 2, 1, 1])
+    n = 100
+    on_mask = [[0, n, n], [0, n, n], [2 * n, 0, 2 * n], [2 * n, 2 * n, 0]]
+    hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 3, n), (2, 0, n), (2, 1, n), (2, 3, 2 * n),
+            (3, 0, n), (3, 1, n), (3, 2, 2 * n)]
+    surface = _graph(view, instance, on_mask, hits).surface
+    assert not merged_mask_segments(surface, view, instance, ShadowCorrConfig(method="fused")).any()
+
+
+def test_landings_on_a_merged_mask_are_taken_out_hits_and_trials():
+    view, instance, surface = _merge_scene()
+    out = without_landings_on(surface, view, np.array([False, False, True, False, False]))
+    assert 2 not in out.hit_target.tolist()
+    # Its own landings stay, and so does everything between the other segments.
+    assert sorted(zip(out.hit_source.tolist(), out.hit_target.tolist())) == [
+        (0, 3), (1, 4), (2, 0), (2, 1), (2, 3), (2, 4), (3, 0), (4, 1)]
+    # The points that landed on it no longer count as landing on a mask in its view.
+    assert out.on_mask[:, 1].tolist() == [0, 0, 0, 0, 0] and out.on_mask[2].tolist() == [200, 0, 200]
+    assert out.on_mask[0].tolist() == [0, 0, 100] and surface.on_mask[0].tolist() == [0, 100, 100]  # input kept
+    assert without_landings_on(surface, view, np.zeros(5, dtype=bool)) is surface
+
+
+def test_a_merged_mask_does_not_chain_a_rock_that_lands_mostly_on_it():
+    # Rock P in views 0 and 2 (segments 0, 1), rock Q in views 0 and 2 (2, 3), one mask over both in
+    # view 1 (4), mostly P.  Q's two views share little surface (25 points), but most of Q lands on
+    # the merged mask: read as evidence, those landings chain Q to P through it.
+    view, instance = np.array([0, 2, 0, 2, 1]), np.array([1, 1, 2, 2, 1])
+    hits = [(0, 1, 100), (1, 0, 100), (0, 4, 100), (1, 4, 100),
+            (2, 3, 25), (3, 2, 25), (2, 4, 300), (3, 4, 300),
+            (4, 0, 100), (4, 1, 100), (4, 2, 40), (4, 3, 40)]
+    on_mask = np.zeros((5, 3), dtype=np.int64)
+    for a, b, h in hits:
+        on_mask[a, view[b]] += h
+    surface = _graph(view, instance, on_mask, hits).surface
+    config = ShadowCorrConfig(method="fused")
+    chained = agglomerate(_graph(view, instance, on_mask, hits), config)
+    assert len(set(chained.tolist())) == 1
+    merged = merged_mask_segments(surface, view, instance, config)
+    assert merged.tolist() == [False, False, False, False, True]
+    none = np.zeros(0, dtype=np.int64)
+    graph = SegmentGraph(view, instance, without_landings_on(surface, view, merged), none, none, np.zeros(0), np.zeros(0))
+    labels = agglomerate(graph, config)
+    assert labels[0] == labels[1] == labels[4] and labels[2] == labels[3] and labels[0] != labels[2]
 
 
 def test_volumetric_evidence_alone_joins_and_separates():

@@ -162,7 +162,7 @@ def knn_on_grid(
     batch: torch.Tensor,
     k: int,
     *,
-    radius_sq: int = 16,
+    radius_sq: int = 9,
     return_valid: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """:func:`knn_within_scene` for unique integer grid coordinates, in linear time.

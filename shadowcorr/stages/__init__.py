@@ -74,8 +74,10 @@ _EXPORTS = {
     "agglomerate": "_09_grouping",
     "group_by_evidence": "_09_grouping",
     "link_components": "_09_grouping",
+    "merged_mask_segments": "_09_grouping",
     "segment_confidence": "_09_grouping",
     "split_mask_ids": "_09_grouping",
+    "without_landings_on": "_09_grouping",
     "cluster_voxels": "_09_clustering",
     "majority_vote": "_09_clustering",
     "mean_shift": "_09_clustering",
@@ -104,7 +106,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._08_volume_evidence import segment_embeddings, volume_pairs
     from ._09_clustering import cluster_voxels, majority_vote, mean_shift, merge_small_clusters
     from ._09_grouping import (
-        SegmentGraph, agglomerate, group_by_evidence, link_components, segment_confidence, split_mask_ids,
+        SegmentGraph, agglomerate, group_by_evidence, link_components, merged_mask_segments, segment_confidence,
+        split_mask_ids, without_landings_on,
     )
     from ._10_assignment import (
         evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote,
