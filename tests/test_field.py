@@ -140,6 +140,7 @@ def test_perturbation_recipes_cover_the_ranges():
                               ("spurious_blobs", "on_rocks", 0, 0.5)]:
         v = values(name, key)
         assert v.min() >= lo and v.max() <= hi and v.min() < lo + 0.1 * (hi - lo) and v.max() > hi - 0.1 * (hi - lo)
+    assert all(a["up_to"] for a in args["pose_error"]), "each camera's pose error is its own, up to the scene's"
     px = values("morph_masks", "px")
     assert set(px) == set(range(-5, 0)) | set(range(1, 6)), "erosion and dilation up to 5 px, never 0"
     radii = np.array([a["radius_px"] for a in args["spurious_blobs"]])
@@ -206,7 +207,7 @@ def _check_truth(clean: SceneBundle, out: SceneBundle, *, majority: bool) -> Non
 @pytest.mark.parametrize("step", [
     PerturbationStep(name="depth_noise", args={"fraction": 0.02}),
     PerturbationStep(name="depth_holes", args={"fraction": 0.1, "blob_px": 8.0}),
-    PerturbationStep(name="pose_error", args={"rotation_deg": 2.0, "translation_cm": 5.0}),
+    PerturbationStep(name="pose_error", args={"rotation_deg": 2.0, "translation_cm": 5.0, "up_to": True}),
     PerturbationStep(name="merge_touching", args={"share": 1.0}),
     PerturbationStep(name="morph_masks", args={"px": -3}),
     PerturbationStep(name="morph_masks", args={"px": 3}),

@@ -52,6 +52,7 @@ ALL = [
     lambda b, r: perturb.depth_noise(b, r, 0.01),
     lambda b, r: perturb.depth_holes(b, r, 0.1),
     lambda b, r: perturb.pose_error(b, r, rotation_deg=1.0, translation_cm=5.0),
+    lambda b, r: perturb.pose_error(b, r, rotation_deg=1.0, translation_cm=5.0, up_to=True),
     lambda b, r: perturb.morph_masks(b, r, -2),
     lambda b, r: perturb.split_masks(b, r, 0.5),
     lambda b, r: perturb.merge_touching(b, r, 0.5),
@@ -130,6 +131,14 @@ def test_pose_error_is_exactly_the_given_size(scene, deg, cm):
         axes.append(out.pose[:3, 2] - clean.pose[:3, 2])
     if deg > 0:
         assert not np.allclose(axes[0], axes[1]), "each camera has its own random error"
+
+
+def test_pose_error_up_to_varies_per_camera(scene):
+    moved = perturb.pose_error(scene, _rng(2), rotation_deg=2.0, translation_cm=5.0, up_to=True)
+    angles = [_rotation_angle_deg(o.pose[:3, :3], c.pose[:3, :3]) for c, o in zip(scene.views, moved.views)]
+    shifts = [np.linalg.norm(o.pose[:3, 3] - c.pose[:3, 3]) for c, o in zip(scene.views, moved.views)]
+    assert max(angles) <= 2.0 + 1e-9 and max(shifts) <= 5.0 + 1e-9
+    assert np.ptp(angles) > 0.1 and np.ptp(shifts) > 0.1, "each camera has its own size of error"
 
 
 @pytest.mark.parametrize("px", [2, 5, -2, -5])

@@ -146,5 +146,6 @@ def run_synth(args: argparse.Namespace) -> int:
         config, args.scenes, args.out, seed=args.seed, workers=args.workers,
         progress=not args.quiet, resume=args.resume, field=field,
     )
-    print(f"wrote {len(paths)} scene(s) to {args.out} (dataset.json records the config and seed)")
+    recorded = "each scene's draw" if field is not None else "the config"
+    print(f"wrote {len(paths)} scene(s) to {args.out} (dataset.json records {recorded} and the seed)")
     return 0

@@ -127,14 +127,16 @@ class DepthHolesRange(_Applied):
 
 
 class PoseErrorRange(_Applied):
-    """``perturb.pose_error``: every camera off by exactly these amounts (random axis and direction per camera)."""
+    """``perturb.pose_error``: a scene's largest camera errors are drawn in these ranges; each
+    camera is then off by its own amounts up to them (random axis and direction per camera)."""
 
     prob: Probability = 0.4
     rotation_deg: tuple[float, float] = (0.0, 2.0)
     translation_cm: tuple[float, float] = (0.0, 5.0)
 
     def draw(self, rng: np.random.Generator) -> dict[str, Any]:
-        return {"rotation_deg": _uniform(rng, self.rotation_deg), "translation_cm": _uniform(rng, self.translation_cm)}
+        return {"rotation_deg": _uniform(rng, self.rotation_deg), "translation_cm": _uniform(rng, self.translation_cm),
+                "up_to": True}
 
 
 class MorphRange(_Applied):

@@ -175,17 +175,21 @@ def depth_holes(bundle: SceneBundle, rng: np.random.Generator, fraction: float, 
 
 # --------------------------------------------------------------------------- calibration
 def pose_error(bundle: SceneBundle, rng: np.random.Generator, *, rotation_deg: float = 0.0,
-               translation_cm: float = 0.0) -> SceneBundle:
+               translation_cm: float = 0.0, up_to: bool = False) -> SceneBundle:
     """Miscalibrated extrinsics: each camera's declared pose is off by exactly the given amounts.
 
     Every camera is rotated about its own centre by ``rotation_deg`` about a random axis
     and moved ``translation_cm`` in a random direction (independently per camera); the
-    images stay those of the true pose.
+    images stay those of the true pose.  With ``up_to`` each camera's two amounts are
+    drawn uniformly between 0 and the given ones instead (a rig whose cameras are
+    calibrated unevenly well).
     """
     if rotation_deg < 0 or translation_cm < 0:
         raise ValueError("rotation_deg and translation_cm must be >= 0")
     shift = translation_cm * unit_scale("cm", bundle.units)
-    views = [replace(v, pose=perturbed_pose(rng, v.pose, rotation_deg, shift)) for v in bundle.views]
+    scale = rng.random((len(bundle.views), 2)) if up_to else np.ones((len(bundle.views), 2))
+    views = [replace(v, pose=perturbed_pose(rng, v.pose, rotation_deg * a, shift * t))
+             for v, (a, t) in zip(bundle.views, scale)]
     return replace(bundle, views=views, warnings=list(bundle.warnings))
 
 
