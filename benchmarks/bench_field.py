@@ -25,7 +25,12 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from shadowcorr.synth import scene_seed  # noqa: E402
-from shadowcorr.synth.field import PERTURBATION_ORDER, FieldDistribution, sample_for_seed, synthesize_field  # noqa: E402
+from shadowcorr.synth.field import (  # noqa: E402
+    PERTURBATION_ORDER,
+    FieldDistribution,
+    sample_for_seed,
+    synthesize_field,
+)
 
 
 def _spread(values: list[float]) -> str:

@@ -15,11 +15,12 @@ What is drawn, per scene (lengths in cm, angles in degrees):
   a full ring or a partial arc, each camera's azimuth jittered off the even spacing;
   image size from a list and a horizontal field of view (focal length follows:
   ``fx = width / (2 tan(hfov / 2))``).
-* rocks: the smallest diameter (log-uniform) and the ratio of largest to smallest, so a
-  scene has pebbles or boulders or both (no rock wider than the field radius, so rocks
-  stay inside the ring); the field radius as a share of the ring radius; the count, capped so the rocks' footprints cover at
-  most ``max_cover`` of the field; cluster and stack probabilities (packing); roughness;
-  how deep rocks sink (a share of the smallest diameter); ground relief and craters.
+* rocks: the field radius as a share of the ring radius; the smallest diameter
+  (log-uniform) and the ratio of largest to smallest, so a scene has pebbles or boulders
+  or both (no rock wider than the field radius, so rocks stay inside the ring); the
+  count, capped so the rocks' footprints cover at most ``max_cover`` of the field;
+  cluster and stack probabilities (packing); roughness; how deep rocks sink (a share of
+  the smallest diameter); ground relief and craters.
 * perturbations: each kind is applied with its own probability (and none at all with
   ``clean_prob``), with its strength drawn in its range; they are applied in the fixed
   order of ``PERTURBATION_ORDER`` (sensor, calibration, then segmenter errors: merges
@@ -160,7 +161,8 @@ class ShareRange(_Applied):
 
 
 class SpuriousRange(_Applied):
-    """``perturb.spurious_blobs``: ``count`` blobs per view, semi-axes in ``radius_px``, ``on_rocks`` of them on masks."""
+    """``perturb.spurious_blobs``: ``count`` blobs per view, semi-axes in ``radius_px``,
+    the share ``on_rocks`` of them on masks."""
 
     count: tuple[int, int] = (1, 6)
     radius_px: tuple[float, float] = (2.0, 8.0)
@@ -341,7 +343,8 @@ class FieldDistribution(_Frozen):
             raise ValueError(f"terrain_half_size {self.terrain_half_size} must exceed the farthest camera ({far:.0f})")
         widest = self.field_share[1] * self.ring_radius[1]  # rocks reach at most field radius + largest rock <= 2x
         if 2.0 * widest >= self.terrain_half_size:
-            raise ValueError(f"terrain_half_size {self.terrain_half_size} must exceed twice the widest field ({widest:.0f})")
+            raise ValueError(f"terrain_half_size {self.terrain_half_size} must exceed twice the widest field "
+                             f"({widest:.0f})")
         return self
 
     def sample(self, rng: np.random.Generator) -> FieldSample:
