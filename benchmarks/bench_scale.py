@@ -45,15 +45,18 @@ def tile_scene(bases: list, spacing: float):
 
     side = math.ceil(math.sqrt(len(bases)))
     id_stride = 1 + max(int(v.mask.max()) for base in bases for v in base.views)
-    views = []
+    views, seen = [], set()
     for c, base in enumerate(bases):
         offset = np.array([(c % side) * spacing, (c // side) * spacing, 0.0])
+        # A scene tiled again gets its own copy of the depth (a field holds as much as it shows);
+        # distinct scenes hand theirs over (no second copy of the input at the peak).
+        repeated, _ = id(base) in seen, seen.add(id(base))
         for v in base.views:
             pose = v.pose.copy()
             pose[:3, 3] += offset
             mask = np.where(v.mask > 0, v.mask + c * id_stride, 0).astype(np.int32)
             views.append(View(name=f"tile{c}_{v.name}", pose=pose, intrinsics=v.intrinsics,
-                              depth=v.depth.copy(), mask=mask))
+                              depth=v.depth.copy() if repeated else v.depth, mask=mask))
     return SceneBundle(units=bases[0].units, views=views, name=f"field_x{len(bases)}",
                        ground_truth=bases[0].ground_truth)
 
