@@ -20,8 +20,10 @@ The denominator's domain ``D(a)`` is set by ``segment_embedding_scope``:
   only ever pushed each other apart; restricted, every component is an independent
   small problem (each with the loss averaged over its own segments) and the cost
   follows the sum of squared component sizes instead of the squared segment count.
-  Components are trained together in padded batches, one per power-of-two size bucket
-  (the small ones all in one), so the Python loop runs over buckets x steps.
+  Components are trained together in padded batches, one per power-of-two size bucket;
+  components of up to 64 segments share one bucket and are packed side by side into its
+  problems (each with its own softmax domain and loss average), so the Python loop runs
+  over buckets x steps, and a typical scene has one bucket.
 * ``"scene"``: every other segment of the scene (the dense original; quadratic).
 """
 
