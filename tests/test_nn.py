@@ -518,3 +518,31 @@ def test_save_load_round_trip(tmp_path):
     np.testing.assert_array_equal(run_batched(m, feats[:1], idx[:1])[0], want.numpy())
     with pytest.raises(ValueError, match="architecture"):
         save_model(net, reference_card(), tmp_path / "c.safetensors")
+
+
+def test_voxel_hash_squeezes_empty_stretches_and_keeps_every_lookup():
+    # Clusters kilometres apart (in voxels), two scenes: the squeezed box is dense, and every
+    # site + offset lookup and every arbitrary lookup answers what a dictionary of sites does.
+    rng = np.random.default_rng(7)
+    centres = np.array([[0, 0, 0], [125_000, 3, 0], [0, 125_000, 40], [250_000, 250_000, 1]])
+    sites = {}
+    for scene in (0, 1):
+        for c in centres[: 3 + scene]:
+            for p in np.unique(c + rng.integers(-6, 7, size=(60, 3)), axis=0):
+                sites[(scene, *p.tolist())] = len(sites)
+    keys = list(sites)
+    coords = torch.tensor([k[1:] for k in keys], dtype=torch.int64)
+    batch = torch.tensor([k[0] for k in keys], dtype=torch.int64)
+    reach = 3
+    table = VoxelHash(coords, batch, reach=reach)
+    assert table.dense is not None  # unsqueezed, the box would hold about 1e15 cells
+    offsets = torch.from_numpy(rng.integers(-reach, reach + 1, size=(40, 3)))
+    got = table.offset_lookup(offsets)
+    for o, off in enumerate(offsets.tolist()):
+        want = [sites.get((k[0], k[1] + off[0], k[2] + off[1], k[3] + off[2]), -1) for k in keys]
+        assert got[o].tolist() == want
+    # Arbitrary queries: sites, points in the squeezed gaps, other scenes, outside every box.
+    queries = [k[1:] for k in keys[::7]] + [[60_000, 0, 0], [0, 0, 20], [7, 7, 7], [-10**6, 0, 0], [125_000, 3, 0]]
+    scenes = [k[0] for k in keys[::7]] + [0, 0, 1, 0, 2]
+    found = table.lookup(torch.tensor(queries), torch.tensor(scenes))
+    assert found.tolist() == [sites.get((b, *q), -1) for q, b in zip(queries, scenes)]

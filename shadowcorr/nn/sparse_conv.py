@@ -59,7 +59,12 @@ class VoxelHash:
 
     Lookups use a dense key -> row array when the key space is small (the usual case:
     a scene of a few thousand voxels spans well under a million cells; one gather per
-    query), else the sorted keys and ``searchsorted``.
+    query), else the sorted keys and ``searchsorted``.  Empty stretches of a scene are
+    squeezed out of its box first: per axis, a gap between consecutive occupied values
+    wider than ``2 * reach + 2`` is narrowed to that.  An offset of at most ``reach``
+    from a site never crosses such a gap, so ``site + offset`` keeps its meaning, and a
+    field of clusters far apart (a site survey, tiles a kilometre apart) still gets a
+    dense table.
 
     Args:
         coords: (N, 3) int64 integer coordinates.
@@ -92,6 +97,12 @@ class VoxelHash:
         batch = batch.to(torch.int64)
         self.scenes, self.scene_of_row = torch.unique(batch, return_inverse=True)
         n_scenes = self.scenes.numel()
+        self._axis_min = [int(coords[:, a].min()) if n else 0 for a in range(3)]
+        self._axis_span = [int(coords[:, a].max()) - self._axis_min[a] + 1 if n else 1 for a in range(3)]
+        self._axes = [self._squeeze_axis(self.scene_of_row, coords[:, a] - self._axis_min[a], self._axis_span[a],
+                                         2 * reach + 2) for a in range(3)]
+        given = coords
+        coords = torch.stack([rows for _, _, rows in self._axes], dim=1)
         idx3 = self.scene_of_row.unsqueeze(1).expand(-1, 3)
         lo = torch.full((n_scenes, 3), torch.iinfo(torch.int64).max, dtype=torch.int64, device=device)
         hi = torch.full((n_scenes, 3), torch.iinfo(torch.int64).min, dtype=torch.int64, device=device)
@@ -117,10 +128,40 @@ class VoxelHash:
             rows = torch.arange(n, dtype=torch.int32, device=device)
             self.dense[self.keys] = rows
             if n and not bool((self.dense[self.keys] == rows).all()):
-                self._raise_duplicate(coords, batch, self.keys, torch.sort(self.keys))
+                self._raise_duplicate(given, batch, self.keys, torch.sort(self.keys))
         else:
             self.sorted_keys, self.perm = torch.sort(self.keys)
-            self._raise_duplicate(coords, batch, self.keys, (self.sorted_keys, self.perm))
+            self._raise_duplicate(given, batch, self.keys, (self.sorted_keys, self.perm))
+
+    @staticmethod
+    def _squeeze_axis(scene: torch.Tensor, values: torch.Tensor, span: int, widest: int
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One axis (``values`` in ``[0, span)``): the sorted occupied (scene, value) keys, their
+        squeezed values, and each row's squeezed value.  Gaps wider than ``widest`` within a
+        scene are narrowed to it."""
+        key = scene * span + values
+        occupied, row_slot = torch.unique(key, return_inverse=True)
+        occ_scene = occupied // span
+        occ_value = occupied % span
+        step = torch.diff(occ_value, prepend=occ_value[:1])
+        step = torch.where(torch.diff(occ_scene, prepend=occ_scene[:1]) != 0, 0, step.clamp(max=widest))
+        squeezed = occ_value[:1] + torch.cumsum(step, dim=0) if occupied.numel() else occ_value
+        return occupied, squeezed, squeezed[row_slot]
+
+    def _squeeze_query(self, scene: torch.Tensor, coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Squeezed coordinates of arbitrary queries and whether each lies on occupied values
+        of its scene on every axis (else no site can be there)."""
+        out, found = [], torch.ones(coords.shape[:-1], dtype=torch.bool, device=coords.device)
+        for a, (occupied, squeezed, rows) in enumerate(self._axes):
+            values = coords[..., a]
+            lo_value = int(self._axis_min[a])
+            span = self._axis_span[a]
+            inside = (values >= lo_value) & (values < lo_value + span)
+            key = scene * span + (values - lo_value).clamp(0, span - 1)
+            pos = torch.searchsorted(occupied, key).clamp_(max=max(occupied.numel() - 1, 0))
+            found &= inside & (occupied[pos] == key)
+            out.append(squeezed[pos])
+        return torch.stack(out, dim=-1), found
 
     @staticmethod
     def _raise_duplicate(coords: torch.Tensor, batch: torch.Tensor, keys: torch.Tensor, sorted_perm) -> None:
@@ -157,8 +198,10 @@ class VoxelHash:
         coords = coords.expand(*shape, 3)
         batch = batch.expand(shape)
         scene = torch.searchsorted(self.scenes, batch).clamp_(max=self.scenes.numel() - 1)
+        # On squeezed coordinates: a query off the occupied values of an axis holds no site.
+        coords, occupied = self._squeeze_query(scene, coords.to(torch.int64))
         lo, hi = self.lo[scene], self.hi[scene]
-        inside = (self.scenes[scene] == batch) & ((coords >= lo) & (coords <= hi)).all(dim=-1)
+        inside = occupied & (self.scenes[scene] == batch) & ((coords >= lo) & (coords <= hi)).all(dim=-1)
         # Clamp so out-of-box queries still encode to in-range keys; ``inside`` drops them.
         keys = self._encode(scene, torch.minimum(torch.maximum(coords, lo), hi))
         return torch.where(inside, self._find(keys), -1)
