@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import io
 import json
 import os
 import signal
@@ -175,8 +174,6 @@ def bench_stalled(server: ServerProcess, body: bytes, n: int) -> None:
 
 def confetti_scene(n_blobs: int = 1900) -> bytes:
     """One view whose mask holds ``n_blobs`` separate ~60-pixel blobs, all with valid depth."""
-    from shadowcorr.io import bundle_to_parts
-
     from service.synthetic import synthetic_bundle
 
     bundle = synthetic_bundle(n_rocks=3, n_views=3, width=640, height=480)

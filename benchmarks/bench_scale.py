@@ -50,7 +50,8 @@ def tile_scene(bases: list, spacing: float):
         offset = np.array([(c % side) * spacing, (c // side) * spacing, 0.0])
         # A scene tiled again gets its own copy of the depth (a field holds as much as it shows);
         # distinct scenes hand theirs over (no second copy of the input at the peak).
-        repeated, _ = id(base) in seen, seen.add(id(base))
+        repeated = id(base) in seen
+        seen.add(id(base))
         for v in base.views:
             pose = v.pose.copy()
             pose[:3, 3] += offset

@@ -12,7 +12,6 @@ deadline.  One server serves the module; the last test shuts it down.
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import signal
 import socket

@@ -99,10 +99,12 @@ class VoxelHash:
         n_scenes = self.scenes.numel()
         self._axis_min = [int(coords[:, a].min()) if n else 0 for a in range(3)]
         self._axis_span = [int(coords[:, a].max()) - self._axis_min[a] + 1 if n else 1 for a in range(3)]
-        self._axes = [self._squeeze_axis(self.scene_of_row, coords[:, a] - self._axis_min[a], self._axis_span[a],
-                                         2 * reach + 2) for a in range(3)]
+        squeezed_axes = [self._squeeze_axis(self.scene_of_row, coords[:, a] - self._axis_min[a], self._axis_span[a],
+                                            2 * reach + 2) for a in range(3)]
+        # Per axis, the occupied (scene, value) keys and their squeezed values, for lookup().
+        self._axes = [(occupied, squeezed) for occupied, squeezed, _ in squeezed_axes]
         given = coords
-        coords = torch.stack([rows for _, _, rows in self._axes], dim=1)
+        coords = torch.stack([rows for _, _, rows in squeezed_axes], dim=1)
         idx3 = self.scene_of_row.unsqueeze(1).expand(-1, 3)
         lo = torch.full((n_scenes, 3), torch.iinfo(torch.int64).max, dtype=torch.int64, device=device)
         hi = torch.full((n_scenes, 3), torch.iinfo(torch.int64).min, dtype=torch.int64, device=device)
@@ -152,7 +154,7 @@ class VoxelHash:
         """Squeezed coordinates of arbitrary queries and whether each lies on occupied values
         of its scene on every axis (else no site can be there)."""
         out, found = [], torch.ones(coords.shape[:-1], dtype=torch.bool, device=coords.device)
-        for a, (occupied, squeezed, rows) in enumerate(self._axes):
+        for a, (occupied, squeezed) in enumerate(self._axes):
             values = coords[..., a]
             lo_value = int(self._axis_min[a])
             span = self._axis_span[a]
