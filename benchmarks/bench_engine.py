@@ -22,8 +22,9 @@ from pathlib import Path
 
 import torch
 
-from shadowcorr import correspond, load_bundle, load_model
+from shadowcorr import ShadowCorrConfig, correspond, load_bundle, load_model
 from shadowcorr.convert import convert_ue, load_ue_scene
+from shadowcorr.ops import resolve_threads
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "ue_sample"  # ships with the repository
 
@@ -34,20 +35,22 @@ def main() -> int:
     parser.add_argument("--cameras", default="0,2,4,6")
     parser.add_argument("--model", default=None, help="default: the packaged model")
     parser.add_argument("--data", default=str(SAMPLE))
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (the service's workers use 1)")
+    parser.add_argument("--threads", type=int, default=1, help="num_threads of the configuration and torch's "
+                        "threads (0: every core; the service's workers use 1)")
     parser.add_argument("--device", default="cpu", help="torch device of the network: cpu, cuda, cuda:N")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    config = ShadowCorrConfig(num_threads=args.threads)
+    torch.set_num_threads(resolve_threads(args.threads))
     cameras = [int(c) for c in args.cameras.split(",")]
     model = load_model(args.model, device=args.device)
 
     bundle = load_ue_scene(args.data, 2001, cameras)
-    correspond(bundle, model)  # warm-up: first-call allocations and lazy imports
+    correspond(bundle, model, config)  # warm-up: first-call allocations and lazy imports
     stages: dict[str, list[float]] = {}
     totals, cpu = [], []
     for _ in range(args.repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        result = correspond(bundle, model)
+        result = correspond(bundle, model, config)
         totals.append((time.perf_counter() - t0) * 1e3)
         cpu.append((time.process_time() - c0) * 1e3)
         for k, v in result.timings_ms.items():
@@ -60,14 +63,14 @@ def main() -> int:
             t0 = time.perf_counter()
             loaded = load_bundle(path)
             t1 = time.perf_counter()
-            correspond(loaded, model)
+            correspond(loaded, model, config)
             disk.append((time.perf_counter() - t0) * 1e3)
             loads.append((t1 - t0) * 1e3)
 
     m = result.metrics or {}
     print(f"scene Set2001 cameras {args.cameras}: {len(result.segments)} segments, "
           f"{sum(o.num_voxels for o in result.objects)} voxels, model {model.name} on {args.device}, "
-          f"torch threads {args.threads}")
+          f"num_threads {args.threads}")
     print(f"average purity {m.get('average_purity', float('nan')):.2f}, voxel ARI {m.get('voxel_ari', float('nan')):.4f}")
     print(f"{'stage':<20}{'median ms':>12}")
     for k, v in stages.items():

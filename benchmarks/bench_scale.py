@@ -14,8 +14,9 @@ rocks seen by 4 cameras at 1080p, generator seeds 9101/i, cached under ``--cache
 the ``synth`` extra).  For synthetic fields the quality column compares the field with its
 tiles labelled one by one.
 
-Each field size runs in a fresh process (clean peak memory) with ``torch.set_num_threads``
-as in the service (1 by default).  Printed per size: rocks, views, segments, objects found,
+Each field size runs in a fresh process (clean peak memory) with ``num_threads`` and torch's
+threads = ``--threads`` (1 by default, as in the service's workers; ``--threads 2`` uses two
+cores for the stages and the network).  Printed per size: rocks, views, segments, objects found,
 wall time per stage (``result.timings_ms``), the CPU time of the whole call (less
 sensitive than wall time to other work on a shared machine), peak resident memory of the process (and
 of the decoded input alone), and the average purity next to the single scene's.  At the
@@ -90,10 +91,12 @@ def run_one(copies: int, cameras: list[int], spacing: float, threads: int, data:
     """Label one tiled field in this process; returns its figures."""
     import torch
 
-    from shadowcorr import correspond, load_model
+    from shadowcorr import ShadowCorrConfig, correspond, load_model
     from shadowcorr.convert import load_ue_scene
+    from shadowcorr.ops import resolve_threads
 
-    torch.set_num_threads(threads)
+    config = ShadowCorrConfig(num_threads=threads)
+    torch.set_num_threads(resolve_threads(threads))
     model = load_model()
     if source == "sample":
         base = load_ue_scene(data, 2001, cameras)
@@ -101,7 +104,7 @@ def run_one(copies: int, cameras: list[int], spacing: float, threads: int, data:
     else:
         bases = synthetic_tiles(copies, cache)
         base = bases[0]
-    correspond(base, model)  # warm-up: lazy imports and first-call allocations
+    correspond(base, model, config)  # warm-up: lazy imports and first-call allocations
     bundle = tile_scene(bases, spacing)
     del bases, base
     input_mb = sum(v.depth.nbytes + v.mask.nbytes for v in bundle.views) / 2**20
@@ -109,13 +112,13 @@ def run_one(copies: int, cameras: list[int], spacing: float, threads: int, data:
     views = len(bundle.views)
     before = _peak_rss_mb()
     t0, cpu0 = time.perf_counter(), time.process_time()
-    result = correspond(bundle, model, metrics=True)
+    result = correspond(bundle, model, config, metrics=True)
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     peak = _peak_rss_mb()
     alone = None
     if source == "synthetic":  # the ideal: every tile labelled on its own (after the field: its peak is measured)
         del bundle
-        alone = float(np.mean([correspond(b, model, metrics=True).metrics["average_purity"]
+        alone = float(np.mean([correspond(b, model, config, metrics=True).metrics["average_purity"]
                                for b in synthetic_tiles(copies, cache)]))
     return {
         "copies": copies,
@@ -164,7 +167,8 @@ def main() -> int:
     parser.add_argument("--cache", default="out/scale_synth", help="generated synthetic tiles (--source synthetic)")
     parser.add_argument("--cameras", default="0,2,4,6")
     parser.add_argument("--spacing", type=float, default=100000.0, help="distance between copies (bundle units)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (the service uses 1)")
+    parser.add_argument("--threads", type=int, default=1, help="num_threads of the configuration and torch's "
+                        "threads (0: every core; the service's workers use 1)")
     parser.add_argument("--data", default=str(SAMPLE))
     parser.add_argument("--out", default="out")
     parser.add_argument("--embedding", action="store_true", help="only compare the segment-id embedding scopes")

@@ -47,20 +47,22 @@ def scenes() -> Iterator[tuple[str, Any]]:
     yield "synth_raster", generate_scene(small, seed=5)
 
 
-def record(path: str) -> None:
+def record(path: str, threads: int = 1) -> None:
     import torch
 
     import shadowcorr
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(threads)
     out: dict[str, Any] = {}
     model = shadowcorr.load_model()
     for name, bundle in scenes():
         for method in METHODS:
-            config = shadowcorr.ShadowCorrConfig(method=method, refine_poses=name == "ue_pose_refined")
+            config = shadowcorr.ShadowCorrConfig(method=method, refine_poses=name == "ue_pose_refined",
+                                                 num_threads=threads)
             doc = shadowcorr.correspond(bundle, model=model, config=config).model_dump(mode="json")
             for volatile in ("timings_ms", "shadowcorr_version"):
                 doc.pop(volatile, None)
+            doc["config"].pop("num_threads", None)  # how the work was spread, not what it computes
             model_sha = doc["model"].pop("sha256") if doc.get("model") else None
             out[f"{name}/{method}"] = {
                 "labels": [s["object"] for s in doc["segments"]],
@@ -70,7 +72,7 @@ def record(path: str) -> None:
                 "model_sha": model_sha,
             }
             print(f"{name:16s} {method:10s} {len(doc['segments'])} segments -> {len(doc['objects'])} objects", flush=True)
-        (embeddings,) = shadowcorr.embed(model, [shadowcorr.prepare(bundle)])
+        (embeddings,) = shadowcorr.embed(model, [shadowcorr.prepare(bundle, shadowcorr.ShadowCorrConfig(num_threads=threads))])
         out[f"{name}/embeddings"] = hashlib.sha256(np.ascontiguousarray(embeddings).tobytes()).hexdigest()
     with open(path, "w") as fh:
         json.dump(out, fh, indent=1)
@@ -97,13 +99,15 @@ def compare(a_path: str, b_path: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("record", help="write the results of this checkout").add_argument("out")
+    rec = sub.add_parser("record", help="write the results of this checkout")
+    rec.add_argument("out")
+    rec.add_argument("--threads", type=int, default=1, help="num_threads of the configuration and torch's threads")
     cmp = sub.add_parser("compare", help="compare two records; exit 1 when anything differs")
     cmp.add_argument("first")
     cmp.add_argument("second")
     args = parser.parse_args(argv)
     if args.command == "record":
-        record(args.out)
+        record(args.out, args.threads)
         return 0
     return compare(args.first, args.second)
 

@@ -106,6 +106,8 @@ def add_method_options(p: argparse.ArgumentParser) -> None:
                    help="register the views' depth to each other and correct their poses first (default: the configuration's)")
     p.add_argument("--device", default="cpu", type=_device,
                    help="torch device of the network: cpu (default), cuda, cuda:N or mps; the rest runs on the CPU")
+    p.add_argument("--threads", type=_threads, default=0,
+                   help="threads for one scene: the stages' num_threads and torch's (default 0: every core)")
 
 
 def _device(text: str) -> str:
@@ -116,11 +118,21 @@ def _device(text: str) -> str:
     return text
 
 
+def _threads(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a thread count (0: every core), got {text!r}")
+    return value
+
+
 def config_from_args(args: argparse.Namespace) -> "ShadowCorrConfig":
     """The ``ShadowCorrConfig`` that the options of :func:`add_method_options` describe."""
     from .config import ShadowCorrConfig
 
-    options: dict[str, object] = {"method": args.method}
+    options: dict[str, object] = {"method": args.method, "num_threads": args.threads}
     if args.bandwidth is not None:
         options["baseline_bandwidth" if args.method == "meanshift" else "bandwidth"] = args.bandwidth
     if args.no_split_components:
@@ -135,8 +147,12 @@ def config_from_args(args: argparse.Namespace) -> "ShadowCorrConfig":
 def _model(args: argparse.Namespace):
     if args.method in ("meanshift", "projection"):  # the methods without a network
         return None
-    from .nn import load_model
+    import torch
 
+    from .nn import load_model
+    from .ops import resolve_threads
+
+    torch.set_num_threads(resolve_threads(args.threads))
     return load_model(args.model, device=args.device)
 
 

@@ -32,6 +32,10 @@ class ShadowCorrConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     units: Literal["m", "cm", "mm"] = "cm"
+    num_threads: int = Field(1, ge=0, description="threads for one scene's preparation (views, view pairs, chunks "
+                             "of segments, k-NN searches); 0: every core.  Results do not depend on it.  The network "
+                             "uses torch's own setting (torch.set_num_threads).  The service runs one scene per core "
+                             "and keeps 1")
 
     # step 0: pose refinement (shadowcorr.stages, stage 01)
     refine_poses: bool = Field(True, description="register the views' full depth to each other and correct their poses first")
@@ -55,8 +59,11 @@ class ShadowCorrConfig(BaseModel):
     max_depth: float = Field(2000.0, gt=0, description="depth beyond this is invalid (units)")
 
     subsample_pixels: bool = Field(True, description="back-project only every k-th pixel per axis, k as many "
-                                   "pixels as fit in half a downsample cell at the view's median depth "
+                                   "pixels as fit in pixel_spacing of a downsample cell at the view's median depth "
                                    "(num_points then counts the back-projected points)")
+    pixel_spacing: float = Field(0.7, gt=0, le=1, description="with subsample_pixels: the back-projected pixels' "
+                                 "spacing on a surface facing the camera, in downsample cells (at most; the stride "
+                                 "is a whole number of pixels)")
 
     # step 1: per-segment clean-up
     downsample_size: float = Field(2.0, gt=0, description="voxel-grid downsampling cell (units)")

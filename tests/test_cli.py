@@ -118,6 +118,26 @@ def test_cameras_on_a_bundle_is_an_error(small_bundle, capsys) -> None:
     assert "--cameras" in err and "is a bundle" in err
 
 
+def test_threads_option_gives_the_same_labels_and_refuses_negative_counts(small_bundle, tmp_path, capsys) -> None:
+    import json
+
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        for threads in ("1", "2"):
+            assert main(["correspond", str(small_bundle), "--threads", threads, "--out", str(tmp_path / threads)]) == 0
+            assert torch.get_num_threads() == int(threads)
+    finally:
+        torch.set_num_threads(before)
+    one, two = (json.loads((tmp_path / t).read_text()) for t in ("1", "2"))
+    assert [s["object"] for s in one["segments"]] == [s["object"] for s in two["segments"]]
+    assert (one["config"]["num_threads"], two["config"]["num_threads"]) == (1, 2)
+    with pytest.raises(SystemExit):
+        main(["correspond", str(small_bundle), "--threads", "-1"])
+    assert "expected a thread count" in capsys.readouterr().err
+
+
 def test_eval_table_header_is_not_cut(small_bundle, capsys) -> None:
     assert main(["eval", str(small_bundle), "--quiet"]) == 0
     header = capsys.readouterr().out.splitlines()[0]

@@ -11,11 +11,11 @@ from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle, View
 from shadowcorr.errors import DepthRangeError
 from shadowcorr.stages import (
-    beta_profile, cast_shadows, cooccurrence, extract_segments, find_blobs, segment_embedding_loss, segment_shells,
-    train_segment_embeddings, voxel_downsample,
+    SegmentImage, beta_profile, cast_shadows, cooccurrence, extract_segments, find_blobs, segment_embedding_loss,
+    segment_shells, surface_evidence, train_segment_embeddings, voxel_downsample,
 )
 
-from shadowcorr.ops import segment_chunks
+from shadowcorr.ops import resolve_threads, segment_chunks, thread_map
 
 from .paths import REFERENCE_CHECKPOINT as REFERENCE
 from .paths import SAMPLE_DIR as SAMPLE
@@ -82,10 +82,10 @@ def test_blob_image_matches_labelling_each_instance_over_the_whole_frame(id_scal
     mask[:, 0] = 9  # a column on the left edge, a row on the bottom edge
     mask[-1, 30:] = 9
     mask = (mask * id_scale).astype(np.int64)
-    blobs = find_blobs(mask, True, 5, first_index=7)
+    blobs = find_blobs(mask, True, 5)
     # Reference: every instance labelled over the whole frame, blobs largest first.
     expected = np.full(mask.shape, -1)
-    index, lengths = 7, []
+    index, lengths = 0, []
     for value in np.unique(mask[mask > 0]):
         labels, n = ndimage.label(mask == value, structure=np.ones((3, 3), bool))
         counts = np.bincount(labels.ravel())[1:]
@@ -101,6 +101,18 @@ def test_blob_image_matches_labelling_each_instance_over_the_whole_frame(id_scal
     assert (blobs.labels[~inside] == -1).all() and (r0, r1, c0, c1) == (0, 60, 0, 90)
     empty = find_blobs(np.zeros((4, 5), np.int32))
     assert empty.lengths.size == 0 and (empty.labels == -1).all() and empty.labels.shape == (4, 5)
+
+
+def test_segment_image_shifted_moves_indices_to_the_scene_numbering_and_widens_when_needed():
+    mask = np.zeros((6, 8), np.int32)
+    mask[1:3, 1:3], mask[4:6, 5:8] = 3, 4
+    image = SegmentImage.from_blobs(find_blobs(mask, True, 1))
+    rows, cols = np.array([0, 1, 4, 5]), np.array([0, 1, 6, 7])
+    assert image.at(rows, cols).tolist() == [-1, 0, 1, 1]
+    assert image.shifted(10).at(rows, cols).tolist() == [-1, 10, 11, 11]
+    assert image.at(rows, cols).tolist() == [-1, 0, 1, 1]  # the original is left as it was
+    far = image.shifted(32_766)  # beyond int16
+    assert far.window.dtype == np.int32 and far.at(rows, cols).tolist() == [-1, 32_766, 32_767, 32_767]
 
 
 def test_pixel_subsampling_keeps_the_downsample_cells_of_nearly_every_point():
@@ -152,6 +164,53 @@ def test_shadows_and_outliers_in_small_chunks_equal_one_pass(monkeypatch):
     chunked = cast_shadows(seg, chunked_shells, cfg)
     for name in ("segment", "cell", "confidence"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
+
+
+@pytest.mark.parametrize("num_threads", [2, 0])
+def test_threads_change_nothing_but_the_time(monkeypatch, num_threads):
+    import shadowcorr.stages._04_shells as shells_mod
+
+    bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII, cameras=3)
+    one, many = ShadowCorrConfig(), ShadowCorrConfig(num_threads=num_threads)
+    seg1, seg2 = extract_segments(bundle, one), extract_segments(bundle, many)
+    np.testing.assert_array_equal(seg2.points, seg1.points)
+    np.testing.assert_array_equal(seg2.lengths, seg1.lengths)
+    for a, b in zip(seg1.pixel_segment, seg2.pixel_segment):  # later views' indices shifted alike
+        np.testing.assert_array_equal(b.window, a.window)
+        assert (b.top, b.left) == (a.top, a.left)
+    evidence1, evidence2 = surface_evidence(bundle, seg1, one), surface_evidence(bundle, seg2, many)
+    for name in ("visible", "on_mask", "hit_source", "hit_target", "hit_count"):
+        np.testing.assert_array_equal(getattr(evidence2, name), getattr(evidence1, name))
+    monkeypatch.setattr(shells_mod, "_CHUNK_RAW_POINTS", 3000)  # many chunks: they run on the threads
+    shells1, shells2 = segment_shells(seg1, one), segment_shells(seg2, many)
+    np.testing.assert_array_equal(shells2.points, shells1.points)
+    np.testing.assert_array_equal(shells2.axis_lengths, shells1.axis_lengths)
+    shadows1, shadows2 = cast_shadows(seg1, shells1, one), cast_shadows(seg2, shells2, many)
+    for name in ("segment", "cell", "confidence"):
+        np.testing.assert_array_equal(getattr(shadows2, name), getattr(shadows1, name))
+
+
+def test_thread_map_keeps_the_order_and_raises_what_the_function_raises():
+    import threading
+
+    seen = set()
+
+    def work(i: int) -> int:
+        seen.add(threading.get_ident())
+        return i * i
+
+    assert thread_map(work, range(40), 3) == [i * i for i in range(40)]
+    assert thread_map(work, [], 0) == [] and resolve_threads(0) >= 1 and resolve_threads(3) == 3
+    seen.clear()
+    assert thread_map(work, range(5), 1) == [0, 1, 4, 9, 16] and seen == {threading.get_ident()}  # no pool
+
+    def fail(i: int) -> int:
+        if i == 3:
+            raise ValueError("item 3")
+        return i
+
+    with pytest.raises(ValueError, match="item 3"):
+        thread_map(fail, range(6), 2)
 
 
 def test_segment_chunks_hold_whole_segments_of_about_the_asked_weight():

@@ -8,7 +8,9 @@ the number of segments given explicitly (segments may be empty):
 - :func:`segment_max`, :func:`segment_min`, :func:`segment_range` - per-segment reductions;
 - :func:`segment_chunks` - row ranges of whole segments, to bound the memory of expansions;
 - :func:`separation_gap`, :func:`separated` - segments moved apart so that one k-d tree
-  answers per-segment neighbour queries.
+  answers per-segment neighbour queries;
+- :func:`thread_map`, :func:`resolve_threads` - independent chunks or views of a stage on
+  ``num_threads`` threads.
 """
 
 from __future__ import annotations
@@ -17,8 +19,9 @@ from ._grid_keys import pack_cell_keys, unique_keys
 from ._segment_chunks import segment_chunks
 from ._segment_reduce import segment_max, segment_min, segment_range, segment_starts
 from ._segment_separation import separated, separation_gap
+from ._thread_map import resolve_threads, thread_map
 
 __all__ = [
     "pack_cell_keys", "segment_chunks", "segment_max", "segment_min", "segment_range", "segment_starts", "separated",
-    "separation_gap", "unique_keys",
+    "separation_gap", "resolve_threads", "thread_map", "unique_keys",
 ]

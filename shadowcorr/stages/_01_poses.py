@@ -25,7 +25,9 @@ much of that surface, so the views can be registered to each other:
    ``pose_point_spacing``), finishes.  A registration is used only when the surfaces
    overlap enough afterwards, the RMS point-to-plane residual is under
    ``pose_max_residual`` and the surface constrains all six degrees of freedom (the
-   point-to-plane information matrix is not degenerate).
+   point-to-plane information matrix is not degenerate).  The views' clouds are made
+   ``num_threads`` at a time; registration keeps one thread (small_gicp's multi-threaded
+   sums would make the result depend on the thread count).
 3. **Pose graph.**  Each accepted pair (i, j) measures ``T_ij``, the world-frame motion
    that brings view i's surface onto view j's, which ties the corrections:
    ``C_i = C_j T_ij``.  Rotations are averaged in the Lie algebra (iterated linear least
@@ -68,6 +70,7 @@ from scipy.spatial.transform import Rotation
 
 from ..bundle import SceneBundle, View, unit_scale
 from ..config import ShadowCorrConfig
+from ..ops import thread_map
 from ..result import ViewPoseCorrection
 from ._02_segments import back_project
 
@@ -502,12 +505,13 @@ def refine_poses(
                                            correction=identity, message="the bundle has no depth images to register")
                         for v in bundle.views]
 
-    sampled = [_view_grid(v, config.max_depth / scale) for v in bundle.views]
+    sampled = thread_map(lambda v: _view_grid(v, config.max_depth / scale), bundle.views, config.num_threads)
     # Median centre (of every other sample): a view declared far away (another place) must not move it.
     valid = [g[:, ::2, ::2].reshape(3, -1) for g, *_ in sampled]
     valid = [p[:, np.isfinite(p[0])] * scale for p in valid]
     centre = np.median(np.concatenate([p for p in valid if p.size] or [np.zeros((3, 1))], axis=1), axis=1)
-    clouds = [_make_cloud(v, s, centre, scale, config) for v, s in zip(bundle.views, sampled)]
+    clouds = thread_map(lambda vs: _make_cloud(*vs, centre, scale, config), zip(bundle.views, sampled),
+                        config.num_threads)
     camera_offset = np.stack([v.camera_center * scale for v in bundle.views]) - centre
     reaches = [c.reach for c in clouds if c is not None]
     cell = _coarse_match_distance(config, float(np.median(reaches)) if reaches else 0.0)

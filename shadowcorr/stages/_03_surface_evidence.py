@@ -34,7 +34,7 @@ import numpy as np
 
 from ..bundle import SceneBundle, unit_scale
 from ..config import ShadowCorrConfig
-from ..ops import segment_max
+from ..ops import segment_max, thread_map
 from ._02_segments import SegmentImage, Segments
 
 
@@ -145,13 +145,11 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
     centre = np.stack([np.bincount(seg, weights=c, minlength=s) / safe for c in xyz], axis=1)
     radius = segment_max(np.sqrt(sum((c - centre[seg, i]) ** 2 for i, c in enumerate(xyz))), seg, s)
 
-    visible = np.zeros((s, num_views), dtype=np.int64)
-    on_mask = np.zeros((s, num_views), dtype=np.int64)
-    keys, counts = [], []
-    for j, view in enumerate(bundle.views):  # per view, vectorised over all points
-        image = segments.pixel_segment[j]
+    def land(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Visible and on-mask counts of every segment in view j, and the (a, b) landing pairs."""
+        view, image = bundle.views[j], segments.pixel_segment[j]
         if image is None or view.depth is None:
-            continue
+            return None
         k = view.intrinsics
         height, width = image.shape
         rotation, translation = view.pose[:3, :3], view.pose[:3, 3] * scale
@@ -159,7 +157,7 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         cand &= (segments.view != j) & (samples > 0)
         cs = np.flatnonzero(cand)
         if cs.size == 0:
-            continue
+            return None
         take = samples[cs]
         rows = np.repeat(first[cs], take) + (np.arange(take.sum()) - np.repeat(np.cumsum(take) - take, take))
         # World -> camera: cam_i = sum_j (p_j - t_j) R_ji, column by column.
@@ -179,12 +177,20 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         target = image.at(row, col)
         if config.pixel_tolerance > 0:
             target = _nearest_label(image, row, col, target, config.pixel_tolerance)
-        visible[:, j] = np.bincount(src, minlength=s)
         landed = target >= 0
-        on_mask[:, j] = np.bincount(src[landed], minlength=s)
         key, count = np.unique(src[landed] * s + target[landed], return_counts=True)
-        keys.append(key)
-        counts.append(count)
+        return np.bincount(src, minlength=s), np.bincount(src[landed], minlength=s), key, count
+
+    # Views are independent: num_threads of them at once.
+    landings = thread_map(land, range(num_views), config.num_threads)
+    visible = np.zeros((s, num_views), dtype=np.int64)
+    on_mask = np.zeros((s, num_views), dtype=np.int64)
+    keys, counts = [], []
+    for j, found in enumerate(landings):
+        if found is not None:
+            visible[:, j], on_mask[:, j], key, count = found
+            keys.append(key)
+            counts.append(count)
 
     key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
     count = np.concatenate(counts) if counts else np.zeros(0, np.int64)

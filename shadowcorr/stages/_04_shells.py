@@ -7,10 +7,11 @@ points are averaged per ``downsample_size`` grid cell, statistical outliers are 
 error ellipsoid (``ellipsoid_scale`` * sqrt of the covariance eigenvalues) and the viewing
 direction (camera centre -> centroid, or the optical axis) are computed per segment.
 
-Nearest neighbours within a segment come from k-d trees over chunks of whole segments in
-which segments are moved far apart (``ops.separated``).  The trees are small_gicp's (exact
-k-NN; at k = 10 on the sample scene's 74k shell points 104 ms against pykdtree's 125 ms and
-scipy cKDTree's 196 ms, one thread).
+Downsampling and outlier removal run on chunks of whole segments (``num_threads`` of them
+at once), so a large field is many small problems.  Nearest neighbours within a segment
+come from one k-d tree per chunk in which segments are moved far apart (``ops.separated``).
+The trees are small_gicp's (exact k-NN; at k = 10 on the sample scene's 74k shell points
+104 ms against pykdtree's 125 ms and scipy cKDTree's 196 ms, one thread).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 import small_gicp
 
 from ..config import ShadowCorrConfig
-from ..ops import pack_cell_keys, segment_chunks, separated, separation_gap, unique_keys
+from ..ops import pack_cell_keys, resolve_threads, segment_chunks, separated, separation_gap, thread_map, unique_keys
 from ._02_segments import Segments
 
 
@@ -54,13 +55,14 @@ def voxel_downsample(points: np.ndarray, segment: np.ndarray, cell: float) -> tu
 
 
 def remove_statistical_outliers(
-    points: np.ndarray, segment: np.ndarray, num_segments: int, config: ShadowCorrConfig
+    points: np.ndarray, segment: np.ndarray, num_segments: int, config: ShadowCorrConfig, num_threads: int = 1
 ) -> np.ndarray:
     """Boolean keep-mask: drop points whose mean k-NN distance exceeds mean + ratio*std of their segment.
 
     Only segments with more than ``outlier_min_points`` points are filtered;
     k = clamp(n // 10, 2, outlier_max_neighbours), counting the point itself as its
-    own nearest neighbour at distance 0 (as Open3D does).
+    own nearest neighbour at distance 0 (as Open3D does).  ``num_threads`` threads search
+    the k-d trees.
     """
     keep = np.ones(points.shape[0], dtype=bool)
     count = np.bincount(segment, minlength=num_segments)
@@ -68,11 +70,11 @@ def remove_statistical_outliers(
     filtered = (count > config.outlier_min_points)[segment]
     if not filtered.any():
         return keep
-    pts, seg = points[filtered], segment[filtered]
+    pts, seg = (points, segment) if filtered.all() else (points[filtered], segment[filtered])
     k_pt = k_seg[seg]
     mean_d = np.empty(pts.shape[0])
     for lo, hi in segment_chunks(seg, _CHUNK_POINTS):
-        mean_d[lo:hi] = _mean_knn_distance(pts[lo:hi], seg[lo:hi] - seg[lo], k_pt[lo:hi])
+        mean_d[lo:hi] = _mean_knn_distance(pts[lo:hi], seg[lo:hi] - seg[lo], k_pt[lo:hi], num_threads)
     n = np.bincount(seg, minlength=num_segments)
     mu = np.bincount(seg, weights=mean_d, minlength=num_segments) / np.maximum(n, 1)
     var = np.bincount(seg, weights=(mean_d - mu[seg]) ** 2, minlength=num_segments) / np.maximum(n - 1, 1)
@@ -86,11 +88,11 @@ def remove_statistical_outliers(
 _CHUNK_POINTS = 32768
 
 
-def _mean_knn_distance(points: np.ndarray, segment: np.ndarray, k: np.ndarray) -> np.ndarray:
+def _mean_knn_distance(points: np.ndarray, segment: np.ndarray, k: np.ndarray, num_threads: int) -> np.ndarray:
     """Mean distance of every point to its k[i] nearest points of its own segment (itself included)."""
     k_max = int(k.max())
     moved = separated(points, segment, separation_gap(points))
-    _, squared = small_gicp.KdTree(moved, 1).batch_knn_search(moved, k_max, 1)
+    _, squared = small_gicp.KdTree(moved, num_threads).batch_knn_search(moved, k_max, num_threads)
     dist = np.sqrt(np.asarray(squared).reshape(len(points), k_max))
     upto = np.arange(k_max)[None, :] < k[:, None]
     return (dist * upto).sum(axis=1) / k
@@ -99,9 +101,7 @@ def _mean_knn_distance(points: np.ndarray, segment: np.ndarray, k: np.ndarray) -
 def segment_shells(segments: Segments, config: ShadowCorrConfig) -> SegmentShells:
     """Steps 1-3: downsample, remove outliers, error ellipsoid, viewing direction."""
     s = segments.num_segments
-    pts, seg = voxel_downsample(segments.points, segments.segment_index, config.downsample_size)
-    keep = remove_statistical_outliers(pts, seg, s, config)
-    pts, seg = pts[keep], seg[keep]
+    pts, seg = _cleaned_points(segments, config)
 
     count = np.bincount(seg, minlength=s)
     safe = np.maximum(count, 1)[:, None]
@@ -123,6 +123,28 @@ def segment_shells(segments: Segments, config: ShadowCorrConfig) -> SegmentShell
     norm = np.linalg.norm(direction, axis=1, keepdims=True)
     direction = np.where(norm > 0, direction / np.maximum(norm, 1e-12), segments.optical_axis)
     return SegmentShells(pts, seg, count, mean, axis_lengths, direction)
+
+
+def _cleaned_points(segments: Segments, config: ShadowCorrConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 1-2: downsampling on chunks of whole segments (``num_threads`` at once; each
+    segment's cells are its own, so chunks concatenate in segment order), then outlier removal
+    with ``num_threads`` threads searching each k-d tree (small_gicp holds the GIL, so its
+    searches are not run side by side on the pool)."""
+    segment = segments.segment_index
+    threads = resolve_threads(config.num_threads)
+    chunks = segment_chunks(segment, min(_CHUNK_RAW_POINTS, -(-segment.size // threads)))
+    if not chunks:
+        return segments.points.reshape(0, 3), segment
+    parts = thread_map(lambda b: voxel_downsample(segments.points[b[0]:b[1]], segment[b[0]:b[1]],
+                                                  config.downsample_size), chunks, threads)
+    pts, seg = np.concatenate([p for p, _ in parts]), np.concatenate([q for _, q in parts])
+    keep = remove_statistical_outliers(pts, seg, segments.num_segments, config, threads)
+    return pts[keep], seg[keep]
+
+
+#: Back-projected points per downsampling chunk (whole segments): a large field is averaged
+#: piece by piece; with ``num_threads`` > 1 every thread gets a chunk.
+_CHUNK_RAW_POINTS = 1 << 19
 
 
 def raw_shells(segments: Segments) -> SegmentShells:

@@ -24,7 +24,8 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from ..config import ShadowCorrConfig
-from ..ops import pack_cell_keys, segment_chunks, segment_max, segment_range, separated, separation_gap, unique_keys
+from ..ops import (pack_cell_keys, resolve_threads, segment_chunks, segment_max, segment_range, separated,
+                   separation_gap, thread_map, unique_keys)
 from ._02_segments import Segments
 from ._04_shells import SegmentShells
 
@@ -74,28 +75,44 @@ def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrCo
     n_max = np.maximum(np.floor(d_surf / v), 1).astype(np.int64)
     layers = np.where(rho < 1, np.floor(n_max[seg] * (1 - rho)), 0).astype(np.int64)
 
-    # Surface points (layer 0) plus layers 1..n of each point, voxelised chunk by chunk.
+    # Surface points (layer 0) plus layers 1..n of each point, voxelised and weighed chunk by
+    # chunk (``num_threads`` chunks at once).
     reps = layers + 1
-    parts = [_voxelise_layers(pts[lo:hi], seg[lo:hi], reps[lo:hi], direction, v, config.chebyshev_fraction)
-             for lo, hi in segment_chunks(seg, _CHUNK_LAYER_POINTS, weight=reps)]
-    vox_seg = np.concatenate([p[0] for p in parts])
-    vox_cell = np.concatenate([p[1] for p in parts])
+    threads = resolve_threads(config.num_threads)
+    size = min(_CHUNK_LAYER_POINTS, -(-int(reps.sum()) // threads))
 
-    # Confidence: distance from the voxel centre to the segment's nearest surface point.
+    # One separation for the whole scene (voxel centres lie within a shadow's depth plus a voxel
+    # of their points), so that every distance is the same to the last bit however it is chunked.
+    gap = separation_gap(pts) + 8.0 * (max(float(d_surf.max()), v) + v)
+
+    def shadow(bounds: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lo, hi = bounds
+        vox_seg, vox_cell = _voxelise_layers(pts[lo:hi], seg[lo:hi], reps[lo:hi], direction, v,
+                                             config.chebyshev_fraction)
+        phi = _confidence(pts[lo:hi], seg[lo:hi], vox_seg, vox_cell, v, gap, s, config)
+        keep = phi > config.min_confidence
+        return vox_seg[keep], vox_cell[keep], phi[keep]
+
+    parts = thread_map(shadow, segment_chunks(seg, size, weight=reps), threads)
+    return ShadowVoxels(*(np.concatenate([p[i] for p in parts]) for i in range(3)))
+
+
+def _confidence(pts: np.ndarray, seg: np.ndarray, vox_seg: np.ndarray, vox_cell: np.ndarray, v: float, gap: float,
+                num_segments: int, config: ShadowCorrConfig) -> np.ndarray:
+    """Step 6: the Beta profile of each voxel centre's distance to its segment's nearest surface
+    point, relative to the segment's farthest voxel."""
     centres = vox_cell * v
-    gap = separation_gap(pts, centres)
     # Leaves of 32: queries from deep inside a shadow visit many leaves (21 vs 24 ms at 16).
     dist, _ = KDTree(separated(pts, seg, gap), leafsize=32).query(separated(centres, vox_seg, gap), k=1)
-    max_d = segment_max(dist, vox_seg, s)
+    max_d = segment_max(dist, vox_seg, num_segments)
     d_hat = dist / (config.distance_margin * np.maximum(max_d[vox_seg], 1e-12))
-    phi = beta_profile(d_hat, config.beta_alpha, config.beta_beta)
-    keep = phi > config.min_confidence
-    return ShadowVoxels(vox_seg[keep], vox_cell[keep], phi[keep])
+    return beta_profile(d_hat, config.beta_alpha, config.beta_beta)
 
 
 #: Layer points expanded at once (whole segments per chunk): the expansion holds about 80 bytes
 #: per layer point, so a large field's shadows are voxelised in bounded memory.  Chunks hold
-#: whole segments, so their voxels never collide and concatenate in (segment, cell) order.
+#: whole segments, so their voxels never collide and concatenate in (segment, cell) order; with
+#: ``num_threads`` > 1 chunks are also made small enough for every thread to get one.
 _CHUNK_LAYER_POINTS = 1 << 20
 
 
