@@ -1,13 +1,14 @@
 """Per-stage timings of the engine on the real sample scene (median of repeated runs).
 
-    python benchmarks/bench_engine.py [--repeats 7] [--cameras 0,2,4,6] [--model PATH] [--device cpu|cuda]
+    python benchmarks/bench_engine.py [--repeats 7] [--cameras 0,2,4,6] [--model PATH] [--device cpu|cuda] [--threads 1]
 
 Prints milliseconds per stage (median wall time of ``result.timings_ms``) for two paths:
   in memory: decoded SceneBundle -> labels (pose refinement, segments, evidence, network, grouping)
   on disk:   bundle directory -> labels (load_bundle + the above)
 and the median CPU time of the in-memory path (on a shared machine the steadier figure).
 Targets for a 4-view 1080p scene on one core: pose refinement <= 150 ms; everything else
-<= 150 ms in memory and <= 250 ms from disk.  With ``--device cuda`` the network runs on
+<= 150 ms in memory and <= 250 ms from disk.  ``--threads N`` runs the stages with
+``num_threads = N`` and the network on N torch threads (0: every core).  With ``--device cuda`` the network runs on
 the GPU (every other stage stays on the CPU).
 """
 

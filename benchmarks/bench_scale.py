@@ -222,7 +222,7 @@ def _plot(rows: list[dict], slope: float, intercept: float, path: Path) -> None:
     rocks = np.array([r["rocks"] for r in rows], dtype=float)
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.loglog(rocks, [r["wall_s"] for r in rows], "o-", label="total")
-    for stage in ("segments", "surface_evidence", "shells", "shadows", "segment_embedding", "network", "grouping"):
+    for stage in ("poses", "segments", "surface_evidence", "shells", "shadows", "segment_embedding", "network", "grouping"):
         ax.loglog(rocks, [max(r["stages_ms"].get(stage, 0.0), 1e-3) / 1e3 for r in rows], ".--", label=stage)
     ax.loglog(rocks, np.exp(intercept) * rocks**slope, ":", color="k", label=f"fit: rocks^{slope:.2f}")
     ax.set_xlabel("rocks (tiled scenes)")
