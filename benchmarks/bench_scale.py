@@ -2,6 +2,7 @@
 
     python benchmarks/bench_scale.py [--copies 1,5,25,50] [--cameras 0,2,4,6] [--threads 1] [--out out]
     python benchmarks/bench_scale.py --source synthetic --copies 1,5,25   # distinct synthetic tiles
+    python benchmarks/bench_scale.py --source synthetic --tile-rocks 50 --copies 10   # 500 rocks, 40 views
     python benchmarks/bench_scale.py --embedding --copies 1,5,25   # segment-id embedding scopes only
 
 Large fields are built by tiling scenes on a square grid: every tile keeps its own views,
@@ -11,7 +12,8 @@ tile's views see another tile's rocks, so the ideal result is each tile's own.  
 are copies of the real sample scene (``--source sample``: examples/ue_sample, ``--cameras``)
 or distinct synthetic scenes (``--source synthetic``: ``shadowcorr synth`` defaults, 18-20
 rocks seen by 4 cameras at 1080p, generator seeds 9101/i, cached under ``--cache``; needs
-the ``synth`` extra).  For synthetic fields the quality column compares the field with its
+the ``synth`` extra; ``--tile-rocks N`` puts N rocks in each tile, on a disc and under a camera
+ring grown to keep the density and viewing angles).  For synthetic fields the quality column compares the field with its
 tiles labelled one by one.
 
 Each field size runs in a fresh process (clean peak memory) with ``num_threads`` and torch's
@@ -67,17 +69,32 @@ def tile_scene(bases: list, spacing: float):
 SYNTH_SEED = 9101
 
 
-def synthetic_tiles(count: int, cache: Path) -> list:
-    """``count`` distinct synthetic scenes (``shadowcorr synth`` defaults), generated once into ``cache``."""
+def tile_config(rocks: int | None):
+    """The generator's settings for one synthetic tile: its defaults (18-20 rocks), or ``rocks``
+    rocks with the field's disc, the camera ring and its height grown by sqrt(rocks / 19), so the
+    rocks lie as densely and are seen from the same angles as in the default tile."""
+    from shadowcorr.synth import SynthConfig
+
+    if rocks is None:
+        return SynthConfig()
+    base, grow = SynthConfig(), math.sqrt(rocks / 19.0)
+    return SynthConfig(n_rocks=(rocks, rocks), field_radius=base.field_radius * grow, radius=base.radius * grow,
+                       camera_height=base.camera_height * grow)
+
+
+def synthetic_tiles(count: int, cache: Path, rocks: int | None = None) -> list:
+    """``count`` distinct synthetic scenes (``tile_config(rocks)``), generated once into ``cache``
+    (a sub-folder per rock count)."""
     from shadowcorr import load_bundle
-    from shadowcorr.synth import SynthConfig, generate_scene, scene_seed
+    from shadowcorr.synth import generate_scene, scene_seed
     from shadowcorr.io import write_bundle
 
+    folder = cache if rocks is None else cache / f"rocks_{rocks}"
     tiles = []
     for i in range(count):
-        path = cache / f"scene_{i:05d}"
+        path = folder / f"scene_{i:05d}"
         if not (path / "manifest.json").exists():
-            write_bundle(generate_scene(SynthConfig(), scene_seed(SYNTH_SEED, i)), path)
+            write_bundle(generate_scene(tile_config(rocks), scene_seed(SYNTH_SEED, i)), path)
         tiles.append(load_bundle(path))
     return tiles
 
@@ -87,7 +104,7 @@ def _peak_rss_mb() -> float:
 
 
 def run_one(copies: int, cameras: list[int], spacing: float, threads: int, data: str, source: str,
-            cache: Path) -> dict:
+            cache: Path, tile_rocks: int | None = None) -> dict:
     """Label one tiled field in this process; returns its figures."""
     import torch
 
@@ -102,7 +119,7 @@ def run_one(copies: int, cameras: list[int], spacing: float, threads: int, data:
         base = load_ue_scene(data, 2001, cameras)
         bases = [base] * copies
     else:
-        bases = synthetic_tiles(copies, cache)
+        bases = synthetic_tiles(copies, cache, tile_rocks)
         base = bases[0]
     correspond(base, model, config)  # warm-up: lazy imports and first-call allocations
     bundle = tile_scene(bases, spacing)
@@ -119,7 +136,7 @@ def run_one(copies: int, cameras: list[int], spacing: float, threads: int, data:
     if source == "synthetic":  # the ideal: every tile labelled on its own (after the field: its peak is measured)
         del bundle
         alone = float(np.mean([correspond(b, model, config, metrics=True).metrics["average_purity"]
-                               for b in synthetic_tiles(copies, cache)]))
+                               for b in synthetic_tiles(copies, cache, tile_rocks)]))
     return {
         "copies": copies,
         "rocks": rocks,
@@ -165,6 +182,8 @@ def main() -> int:
     parser.add_argument("--source", choices=("sample", "synthetic"), default="sample",
                         help="tiles: copies of the real sample scene, or distinct synthetic scenes")
     parser.add_argument("--cache", default="out/scale_synth", help="generated synthetic tiles (--source synthetic)")
+    parser.add_argument("--tile-rocks", type=int, default=None, help="rocks per synthetic tile (default: the "
+                        "generator's 18-20; more spread the tile and its cameras to keep the density)")
     parser.add_argument("--cameras", default="0,2,4,6")
     parser.add_argument("--spacing", type=float, default=100000.0, help="distance between copies (bundle units)")
     parser.add_argument("--threads", type=int, default=1, help="num_threads of the configuration and torch's "
@@ -180,14 +199,14 @@ def main() -> int:
         return 0
     if args.one is not None:
         print(json.dumps(run_one(args.one, cameras, args.spacing, args.threads, args.data, args.source,
-                                 Path(args.cache))))
+                                 Path(args.cache), args.tile_rocks)))
         return 0
 
     rows = []
     for copies in [int(c) for c in args.copies.split(",")]:
         cmd = [sys.executable, __file__, "--one", str(copies), "--cameras", args.cameras, "--spacing",
                str(args.spacing), "--threads", str(args.threads), "--data", args.data, "--source", args.source,
-               "--cache", args.cache]
+               "--cache", args.cache] + ([] if args.tile_rocks is None else ["--tile-rocks", str(args.tile_rocks)])
         out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
         row = json.loads(out.strip().splitlines()[-1])
         rows.append(row)
