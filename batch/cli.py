@@ -46,7 +46,7 @@ def add_batch_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--limit", type=positive_int, help="run at most this many scenes in this run")
     p.add_argument("--no-metrics", action="store_true", help="skip ground-truth metrics")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_method_options(p)
+    add_method_options(p, threads_default=1)  # the workers already fill the cores, one scene each
     p.set_defaults(func=run_batch_command)
     return p
 

@@ -92,8 +92,11 @@ def parse_cameras(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"cameras must be comma-separated integers, got {text!r}") from None
 
 
-def add_method_options(p: argparse.ArgumentParser) -> None:
-    """The options that choose the method and its settings (shared by correspond, eval and batch)."""
+def add_method_options(p: argparse.ArgumentParser, threads_default: int = 0) -> None:
+    """The options that choose the method and its settings (shared by correspond, eval and batch).
+
+    ``threads_default``: ``--threads`` when not given (0: every core; ``batch``, which runs
+    scenes side by side, passes 1)."""
     p.add_argument("--model", help="model file (.safetensors or reference .pth); default: the packaged model")
     p.add_argument("--method", choices=["fused", "projection", "shadowcorr", "meanshift"], default="fused",
                    help="fused (default): cross-view surface evidence and the network's volumetric evidence; "
@@ -106,8 +109,9 @@ def add_method_options(p: argparse.ArgumentParser) -> None:
                    help="register the views' depth to each other and correct their poses first (default: the configuration's)")
     p.add_argument("--device", default="cpu", type=_device,
                    help="torch device of the network: cpu (default), cuda, cuda:N or mps; the rest runs on the CPU")
-    p.add_argument("--threads", type=_threads, default=0,
-                   help="threads for one scene: the stages' num_threads and torch's (default 0: every core)")
+    p.add_argument("--threads", type=_threads, default=threads_default,
+                   help="threads for one scene: the stages' num_threads and torch's (0: every core; "
+                   f"default {threads_default})")
 
 
 def _device(text: str) -> str:

@@ -169,3 +169,17 @@ def test_cli_offers_every_engine_and_ray_plan_the_runner_knows():
     assert resolve_plan("staged", "cpu") == "staged"
     with pytest.raises(ValueError, match="unknown Ray plan"):
         resolve_plan("pipelined", "cpu")
+
+
+def test_batch_runs_each_scene_on_one_thread_unless_asked():
+    # The workers fill the cores with one scene each; a scene on every core per worker would
+    # oversubscribe them.  A single scene (`correspond`) gets every core by default.
+    import argparse
+
+    from batch.cli import add_batch_parser, options_from_args
+    from shadowcorr.cli import build_parser, config_from_args
+
+    parser = add_batch_parser(argparse.ArgumentParser().add_subparsers())
+    assert options_from_args(parser.parse_args(["data", "--out", "r.jsonl"])).config.num_threads == 1
+    assert options_from_args(parser.parse_args(["data", "--out", "r.jsonl", "--threads", "2"])).config.num_threads == 2
+    assert config_from_args(build_parser().parse_args(["correspond", "x"])).num_threads == 0
