@@ -18,13 +18,16 @@ from .paths import SAMPLE_DIR
 
 TOKEN = "s3cret-token-for-tests"
 TIMEOUT_S = 1.0
+#: A timed-out job's worker is killed this long after the timeout (short: the slow scene below
+#: must outlast timeout + grace on a fast machine too).
+CANCEL_GRACE_S = 0.2
 
 
 @pytest.fixture(scope="module")
 def server():
     srv = ServerProcess(
         ["--workers", "1", "--queue-size", "1", "--request-timeout-s", str(TIMEOUT_S), "--max-wait-ms", "0",
-         "--retry-after-s", "3"],
+         "--retry-after-s", "3", "--cancel-grace-s", str(CANCEL_GRACE_S)],
         env={"SHADOWCORR_AUTH_TOKEN": TOKEN},
         token=TOKEN,
     )
@@ -70,8 +73,9 @@ def test_overload_gets_503_and_slow_request_gets_504(server, tiny):
     from shadowcorr.convert.ue import load_ue_scene
     from shadowcorr.io import bundle_to_parts
 
-    # All 8 cameras of the sample, each view twice (16 views): seconds of work, far beyond
-    # the 1 s timeout plus the 1 s a timed-out job may still run before its worker is killed.
+    # All 8 cameras of the sample, each view twice (16 views): seconds of work (about 2 s on one
+    # idle core), beyond the 1 s timeout plus the 0.2 s a timed-out job may still run before its
+    # worker is killed.
     import dataclasses
 
     bundle = load_ue_scene(SAMPLE_DIR, 2001, range(8))
