@@ -3,8 +3,8 @@
 numpy releases the GIL inside its sorts and element-wise loops, SciPy's image labelling
 and torch inside their kernels, so chunks of whole segments (or whole views) processed on
 a small thread pool share the cores of one machine without copying the scene between
-processes.  small_gicp holds the GIL while it works, so its calls take a thread count of
-their own (``small_gicp_threads``) instead of running inside the pool.
+processes.  small_gicp holds the GIL while it works, so its calls are given ``num_threads``
+as their own thread count instead of running inside the pool.
 """
 
 from __future__ import annotations

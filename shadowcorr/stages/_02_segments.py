@@ -14,6 +14,7 @@ Segments are a ragged batch: all points concatenated, with explicit per-segment
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -222,14 +223,14 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
     points, lengths, view_idx, instances, components, pixels, centers, axes, truth = ([] for _ in range(9))
     pixel_segment: list[SegmentImage | None] = []
     first_segment = 0
-    for vi, (view, (blobs, image, pts, counts)) in enumerate(zip(bundle.views, cut)):
-        pixel_segment.append(image.shifted(first_segment))
-        first_segment += blobs.lengths.size
-        if blobs.lengths.size == 0:
+    for vi, (view, part) in enumerate(zip(bundle.views, cut)):
+        pixel_segment.append(part.image.shifted(first_segment))
+        inst, comp, sizes = part.instance, part.component, part.num_pixels
+        first_segment += inst.size
+        if inst.size == 0:
             continue
-        inst, comp, sizes = blobs.instance, blobs.component, blobs.lengths
-        points.append(pts)
-        lengths.append(counts)
+        points.append(part.points)
+        lengths.append(part.lengths)
         view_idx.append(np.full(inst.size, vi))
         instances.append(inst)
         components.append(comp)
@@ -261,14 +262,24 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
     )
 
 
-def _view_segments(view: View, scale: float, config: ShadowCorrConfig
-                   ) -> tuple[Blobs, SegmentImage, np.ndarray, np.ndarray]:
-    """One view's blobs, their image (blob indices from 0), and the back-projected points of
-    its blobs (configuration units, grouped by blob) with their counts."""
+class _ViewSegments(NamedTuple):
+    """One view's segments; the frame-sized blob image is not kept (only its window), so a
+    field's views cut side by side do not hold a frame each."""
+
+    image: SegmentImage  # blob indices from 0
+    points: np.ndarray  # (P, 3) configuration units, grouped by blob
+    lengths: np.ndarray  # (B,) points per blob
+    instance: np.ndarray  # (B,)
+    component: np.ndarray  # (B,)
+    num_pixels: np.ndarray  # (B,)
+
+
+def _view_segments(view: View, scale: float, config: ShadowCorrConfig) -> _ViewSegments:
+    """One view's blobs, cut and back-projected."""
     blobs = find_blobs(view.mask, config.split_components, config.min_blob_pixels)
     image = SegmentImage.from_blobs(blobs)
     if blobs.lengths.size == 0:
-        return blobs, image, np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        return _ViewSegments(image, np.zeros((0, 3)), *(np.zeros(0, dtype=np.int64) for _ in range(4)))
     # Back-project the pixels of a stride x stride grid, blob after blob, in raster order.
     max_depth_bundle = config.max_depth / scale
     stride = _pixel_stride(view, blobs.labels, max_depth_bundle, scale, config)
@@ -287,7 +298,9 @@ def _view_segments(view: View, scale: float, config: ShadowCorrConfig
     rows, cols = rows * stride + r0, cols * stride + c0
     d = view.depth[rows, cols]
     pts = back_project(view, rows.astype(np.float64), cols.astype(np.float64), d.astype(np.float64))
-    return blobs, image, pts * scale if scale != 1.0 else pts, np.bincount(blob_of_pixel, minlength=blobs.lengths.size)
+    return _ViewSegments(image, pts * scale if scale != 1.0 else pts,
+                         np.bincount(blob_of_pixel, minlength=blobs.lengths.size), blobs.instance, blobs.component,
+                         blobs.lengths)
 
 
 def _from_point_segments(bundle: SceneBundle, scale: float) -> Segments:
