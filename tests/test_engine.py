@@ -222,6 +222,8 @@ def test_segment_chunks_hold_whole_segments_of_about_the_asked_weight():
     for lo, hi in chunks:  # never splits a segment
         assert (lo == 0 or segment[lo] != segment[lo - 1]) and (hi == segment.size or segment[hi] != segment[hi - 1])
     assert len(chunks) >= 3 and segment_chunks(segment[:0], 6) == []
+    assert len(segment_chunks(segment, 100, min_chunks=4)) >= 4  # smaller chunks for a pool of 4
+    assert len(segment_chunks(segment, 100, min_chunks=100)) == 6  # never more than the segments
 
 
 # A small "rock field" of spheres in the reference data's size range; spheres 1 and 2 touch.

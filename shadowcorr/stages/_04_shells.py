@@ -7,10 +7,10 @@ points are averaged per ``downsample_size`` grid cell, statistical outliers are 
 error ellipsoid (``ellipsoid_scale`` * sqrt of the covariance eigenvalues) and the viewing
 direction (camera centre -> centroid, or the optical axis) are computed per segment.
 
-Downsampling and outlier removal run on chunks of whole segments (``num_threads`` of them
-at once), so a large field is many small problems.  Nearest neighbours within a segment
-come from one k-d tree per chunk in which segments are moved far apart (``ops.separated``).
-The trees are small_gicp's (exact k-NN; at k = 10 on the sample scene's 74k shell points
+Downsampling runs on chunks of whole segments (``num_threads`` of them at once), so a
+large field is many small problems.  Nearest neighbours within a segment come from one k-d
+tree per chunk of whole segments, in which segments are moved far apart (``ops.separated``),
+searched on ``num_threads`` threads.  The trees are small_gicp's (exact k-NN; at k = 10 on the sample scene's 74k shell points
 104 ms against pykdtree's 125 ms and scipy cKDTree's 196 ms, one thread).
 """
 
@@ -132,7 +132,7 @@ def _cleaned_points(segments: Segments, config: ShadowCorrConfig) -> tuple[np.nd
     searches are not run side by side on the pool)."""
     segment = segments.segment_index
     threads = resolve_threads(config.num_threads)
-    chunks = segment_chunks(segment, min(_CHUNK_RAW_POINTS, -(-segment.size // threads)))
+    chunks = segment_chunks(segment, _CHUNK_RAW_POINTS, min_chunks=threads)
     if not chunks:
         return segments.points.reshape(0, 3), segment
     parts = thread_map(lambda b: voxel_downsample(segments.points[b[0]:b[1]], segment[b[0]:b[1]],

@@ -79,7 +79,6 @@ def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrCo
     # chunk (``num_threads`` chunks at once).
     reps = layers + 1
     threads = resolve_threads(config.num_threads)
-    size = min(_CHUNK_LAYER_POINTS, -(-int(reps.sum()) // threads))
 
     # One separation for the whole scene (voxel centres lie within a shadow's depth plus a voxel
     # of their points), so that every distance is the same to the last bit however it is chunked.
@@ -93,7 +92,7 @@ def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrCo
         keep = phi > config.min_confidence
         return vox_seg[keep], vox_cell[keep], phi[keep]
 
-    parts = thread_map(shadow, segment_chunks(seg, size, weight=reps), threads)
+    parts = thread_map(shadow, segment_chunks(seg, _CHUNK_LAYER_POINTS, weight=reps, min_chunks=threads), threads)
     return ShadowVoxels(*(np.concatenate([p[i] for p in parts]) for i in range(3)))
 
 
