@@ -195,3 +195,26 @@ def zipped_bundle(bundle: Any) -> tuple[bytes, dict, dict[str, bytes]]:
 
     manifest, files = bundle_to_parts(bundle)
     return zip_files({"manifest.json": json.dumps(manifest).encode(), **files}), manifest, files
+
+
+#: Views in :func:`slow_sample_parts`; servers that take it need ``--max-views`` this high.
+SLOW_SCENE_VIEWS = 24
+
+
+def slow_sample_parts(sample_dir: Path) -> list[tuple[str, tuple[str | None, bytes]]]:
+    """Multipart parts of a request that keeps a worker busy for seconds (about 3.5 s on one
+    idle core of the 2-core CI machine): the sample's 8 cameras, each view three times.
+
+    Tests that need a job still running after a timeout or a disconnect use it with grace
+    periods well under that, so that it outlasts them on a faster machine too.
+    """
+    import dataclasses
+
+    from shadowcorr.convert.ue import load_ue_scene
+    from shadowcorr.io import bundle_to_parts
+
+    bundle = load_ue_scene(sample_dir, 2001, range(8))
+    copies = SLOW_SCENE_VIEWS // len(bundle.views)
+    bundle.views += [dataclasses.replace(v, name=f"{v.name}_{k}") for k in range(2, copies + 1) for v in bundle.views]
+    manifest, files = bundle_to_parts(bundle)
+    return [("manifest", (None, json.dumps(manifest).encode()))] + [("f", (k, v)) for k, v in files.items()]

@@ -5,14 +5,13 @@ The main service tests (``test_service.py``) run without a token: every route is
 
 from __future__ import annotations
 
-import json
 import threading
 import time
 
 import httpx
 import pytest
 
-from .harness import ServerProcess, zipped_bundle
+from .harness import SLOW_SCENE_VIEWS, ServerProcess, slow_sample_parts, zipped_bundle
 
 from .paths import SAMPLE_DIR
 
@@ -27,7 +26,7 @@ CANCEL_GRACE_S = 0.2
 def server():
     srv = ServerProcess(
         ["--workers", "1", "--queue-size", "1", "--request-timeout-s", str(TIMEOUT_S), "--max-wait-ms", "0",
-         "--retry-after-s", "3", "--cancel-grace-s", str(CANCEL_GRACE_S)],
+         "--retry-after-s", "3", "--cancel-grace-s", str(CANCEL_GRACE_S), "--max-views", str(SLOW_SCENE_VIEWS)],
         env={"SHADOWCORR_AUTH_TOKEN": TOKEN},
         token=TOKEN,
     )
@@ -70,18 +69,9 @@ def test_bearer_token_guards_everything_but_health(server, tiny):
 def test_overload_gets_503_and_slow_request_gets_504(server, tiny):
     if not SAMPLE_DIR.is_dir():
         pytest.skip("sample data not available")
-    from shadowcorr.convert.ue import load_ue_scene
-    from shadowcorr.io import bundle_to_parts
-
-    # All 8 cameras of the sample, each view twice (16 views): seconds of work (about 2 s on one
-    # idle core), beyond the 1 s timeout plus the 0.2 s a timed-out job may still run before its
-    # worker is killed.
-    import dataclasses
-
-    bundle = load_ue_scene(SAMPLE_DIR, 2001, range(8))
-    bundle.views += [dataclasses.replace(v, name=v.name + "_again") for v in bundle.views]
-    manifest, files = bundle_to_parts(bundle)
-    parts = [("manifest", (None, json.dumps(manifest).encode()))] + [("f", (k, v)) for k, v in files.items()]
+    # seconds of work, beyond the 1 s timeout plus the 0.2 s a timed-out job may still run
+    # before its worker is killed
+    parts = slow_sample_parts(SAMPLE_DIR)
     ok = {"Authorization": f"Bearer {TOKEN}"}
     result: dict = {}
 

@@ -11,7 +11,6 @@ deadline.  One server serves the module; the last test shuts it down.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import signal
 import socket
@@ -21,7 +20,7 @@ import time
 import httpx
 import pytest
 
-from .harness import ServerProcess, add_zeros_member, zip_files, zipped_bundle
+from .harness import SLOW_SCENE_VIEWS, ServerProcess, add_zeros_member, slow_sample_parts, zip_files, zipped_bundle
 
 from .paths import SAMPLE_DIR
 
@@ -34,6 +33,8 @@ SPOOL = 64 * 1024
 MAX_HEADER = 16 * 1024
 MAX_CONNECTIONS = 48
 GRACE_S = 1.0
+# well under the seconds the slow request still has to run once its client gives up
+CANCEL_GRACE_S = 0.3
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -60,7 +61,8 @@ def server(spool_dir):
             "--max-header-bytes", str(MAX_HEADER),
             "--max-connections", str(MAX_CONNECTIONS),
             "--max-uncompressed-bytes", str(32 * MiB),
-            "--cancel-grace-s", "1.5",
+            "--cancel-grace-s", str(CANCEL_GRACE_S),
+            "--max-views", str(SLOW_SCENE_VIEWS),
             "--graceful-shutdown-s", str(GRACE_S),
             "--retry-after-s", "7",
         ],
@@ -81,16 +83,10 @@ def tiny() -> tuple[bytes, dict, dict]:
 
 @pytest.fixture(scope="module")
 def slow_parts():
-    """A request that takes seconds of worker CPU: the 8 sample cameras, each view twice."""
+    """A request that takes seconds of worker CPU (see :func:`~tests.harness.slow_sample_parts`)."""
     if not SAMPLE_DIR.is_dir():
         pytest.skip("sample data not available")
-    from shadowcorr.convert.ue import load_ue_scene
-    from shadowcorr.io import bundle_to_parts
-
-    bundle = load_ue_scene(SAMPLE_DIR, 2001, range(8))
-    bundle.views += [dataclasses.replace(v, name=v.name + "_again") for v in bundle.views]
-    manifest, files = bundle_to_parts(bundle)
-    return [("manifest", (None, json.dumps(manifest).encode()))] + [("f", (k, v)) for k, v in files.items()]
+    return slow_sample_parts(SAMPLE_DIR)
 
 
 def _connect(server: ServerProcess, timeout: float = 30.0) -> socket.socket:
@@ -296,7 +292,7 @@ def test_cancelled_job_frees_its_worker_and_holds_its_slot_until_stopped(server,
 
     def post() -> None:
         try:
-            httpx.post(server.url + "/correspond", files=slow_parts, timeout=httpx.Timeout(60.0, read=1.0))
+            httpx.post(server.url + "/correspond", files=slow_parts, timeout=httpx.Timeout(60.0, read=0.5))
         except httpx.ReadTimeout:  # the client gives up once the worker is busy
             done["gave_up"] = time.monotonic()
 
@@ -308,7 +304,7 @@ def test_cancelled_job_frees_its_worker_and_holds_its_slot_until_stopped(server,
     assert "gave_up" in done
     # the job still runs after the disconnect: its slot stays taken ...
     assert _health(server)["queue_depth"] == 1
-    # ... until its worker is killed, cancel_grace_s (1.5 s) later, and replaced
+    # ... until its worker is killed, cancel_grace_s later, and replaced
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         h = _health(server)
