@@ -67,6 +67,10 @@ class ShadowCorrConfig(BaseModel):
 
     # step 1: per-segment clean-up
     downsample_size: float = Field(2.0, gt=0, description="voxel-grid downsampling cell (units)")
+    remove_outliers: bool | None = Field(
+        None, description="statistical outlier removal on the downsampled shells; None: on for the paper's methods "
+        "('shadowcorr', 'meanshift'), off for 'fused' (measured on the quality benchmark: the same purity in every "
+        "row within a standard error at 15-25 % less time; 'projection' casts no shadows)")
     outlier_min_points: int = Field(20, ge=2, description="statistical outlier removal above this many points")
     outlier_std_ratio: float = Field(3.0, gt=0)
     outlier_max_neighbours: int = Field(10, ge=2)
@@ -177,6 +181,13 @@ class ShadowCorrConfig(BaseModel):
         if self.projection_pixel_tolerance is not None:
             return self.projection_pixel_tolerance
         return 6 if self.method == "fused" else 0
+
+    @property
+    def outlier_removal(self) -> bool:
+        """``remove_outliers`` with the method's default filled in."""
+        if self.remove_outliers is not None:
+            return self.remove_outliers
+        return self.method != "fused"
 
     @property
     def feature_dim(self) -> int:

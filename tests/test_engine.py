@@ -146,12 +146,30 @@ def test_shadows_fill_the_interior():
     assert np.all(shadows.confidence > cfg.min_confidence)
 
 
+def test_outlier_removal_is_the_papers_step_and_fused_leaves_it_out():
+    assert [ShadowCorrConfig(method=m).outlier_removal for m in ("shadowcorr", "meanshift", "fused")] == [True, True, False]
+    assert ShadowCorrConfig(method="fused", remove_outliers=True).outlier_removal
+    assert not ShadowCorrConfig(method="shadowcorr", remove_outliers=False).outlier_removal
+    # A far stray point among a sphere's shell points: kept without the filter, gone with it.
+    bundle = sphere_scene(FIELD_CENTRES[:2], FIELD_RADII[:2])
+    cfg = ShadowCorrConfig(remove_outliers=False)
+    seg = extract_segments(bundle, cfg)
+    first = slice(0, int(seg.lengths[0]))
+    stray = seg.points[first].mean(axis=0) + 500.0
+    seg.points[int(seg.lengths[0]) - 1] = stray
+    kept = segment_shells(seg, cfg)
+    filtered = segment_shells(seg, cfg.with_options(remove_outliers=True))
+    assert np.any(np.all(kept.points == stray, axis=1))
+    assert not np.any(np.all(filtered.points == stray, axis=1))
+    assert filtered.points.shape[0] < kept.points.shape[0]
+
+
 def test_shadows_and_outliers_in_small_chunks_equal_one_pass(monkeypatch):
     import shadowcorr.stages._04_shells as shells_mod
     import shadowcorr.stages._05_shadows as shadows_mod
 
     bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII)
-    cfg = ShadowCorrConfig()
+    cfg = ShadowCorrConfig(remove_outliers=True)
     seg = extract_segments(bundle, cfg)
     shells = segment_shells(seg, cfg)
     whole = cast_shadows(seg, shells, cfg)
@@ -171,7 +189,7 @@ def test_threads_change_nothing_but_the_time(monkeypatch, num_threads):
     import shadowcorr.stages._04_shells as shells_mod
 
     bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII, cameras=3)
-    one, many = ShadowCorrConfig(), ShadowCorrConfig(num_threads=num_threads)
+    one, many = ShadowCorrConfig(remove_outliers=True), ShadowCorrConfig(remove_outliers=True, num_threads=num_threads)
     seg1, seg2 = extract_segments(bundle, one), extract_segments(bundle, many)
     np.testing.assert_array_equal(seg2.points, seg1.points)
     np.testing.assert_array_equal(seg2.lengths, seg1.lengths)

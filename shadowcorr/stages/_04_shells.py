@@ -3,7 +3,8 @@
 A segment's back-projected points are the visible shell of an object.  Before a shadow
 is cast from it (stage 5) the shell is cleaned and measured, for all segments at once:
 points are averaged per ``downsample_size`` grid cell, statistical outliers are removed
-(mean k-NN distance beyond mean + ratio * std of the segment, as Open3D does), and the
+(mean k-NN distance beyond mean + ratio * std of the segment, as Open3D does; the paper's
+step, which the fused method leaves out: see ``ShadowCorrConfig.remove_outliers``), and the
 error ellipsoid (``ellipsoid_scale`` * sqrt of the covariance eigenvalues) and the viewing
 direction (camera centre -> centroid, or the optical axis) are computed per segment.
 
@@ -127,8 +128,8 @@ def segment_shells(segments: Segments, config: ShadowCorrConfig) -> SegmentShell
 
 def _cleaned_points(segments: Segments, config: ShadowCorrConfig) -> tuple[np.ndarray, np.ndarray]:
     """Steps 1-2: downsampling on chunks of whole segments (``num_threads`` at once; each
-    segment's cells are its own, so chunks concatenate in segment order), then outlier removal
-    with ``num_threads`` threads searching each k-d tree (small_gicp holds the GIL, so its
+    segment's cells are its own, so chunks concatenate in segment order), then (where
+    ``config.outlier_removal``) outlier removal with ``num_threads`` threads searching each k-d tree (small_gicp holds the GIL, so its
     searches are not run side by side on the pool)."""
     segment = segments.segment_index
     threads = resolve_threads(config.num_threads)
@@ -138,6 +139,8 @@ def _cleaned_points(segments: Segments, config: ShadowCorrConfig) -> tuple[np.nd
     parts = thread_map(lambda b: voxel_downsample(segments.points[b[0]:b[1]], segment[b[0]:b[1]],
                                                   config.downsample_size), chunks, threads)
     pts, seg = np.concatenate([p for p, _ in parts]), np.concatenate([q for _, q in parts])
+    if not config.outlier_removal:
+        return pts, seg
     keep = remove_statistical_outliers(pts, seg, segments.num_segments, config, threads)
     return pts[keep], seg[keep]
 
