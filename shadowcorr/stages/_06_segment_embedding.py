@@ -180,8 +180,11 @@ def _train_batch(z: np.ndarray, weights: np.ndarray, component: np.ndarray, conf
     row_scale = (row_ok / np.maximum(rows_in_component, 1) / tau)[..., None]
     m = np.zeros_like(z)
     v = np.zeros_like(z)
+    # The loop runs on small arrays, where numpy's per-call overhead is most of the cost: sums
+    # instead of einsum, and the updates in place.
     for step in range(1, config.segment_embedding_steps + 1):
-        norm = np.maximum(np.sqrt(np.einsum("mnd,mnd->mn", z, z))[..., None], 1e-12)
+        norm = np.sqrt(np.square(z).sum(axis=-1, keepdims=True))
+        np.maximum(norm, 1e-12, out=norm)
         unit = z / norm
         e = unit @ unit.transpose(0, 2, 1)
         e -= 1.0
@@ -194,12 +197,16 @@ def _train_batch(z: np.ndarray, weights: np.ndarray, component: np.ndarray, conf
         q -= e
         q *= row_scale
         g_unit = (q + q.transpose(0, 2, 1)) @ unit
-        grad = (g_unit - unit * np.einsum("mnd,mnd->mn", unit, g_unit)[..., None]) / norm
+        g_unit -= unit * (unit * g_unit).sum(axis=-1, keepdims=True)
+        g_unit /= norm  # the gradient
         m *= _ADAM_BETA1
-        m += (1 - _ADAM_BETA1) * grad
+        m += (1 - _ADAM_BETA1) * g_unit
         v *= _ADAM_BETA2
-        v += (1 - _ADAM_BETA2) * grad * grad
-        z = z - lr * (m / (1 - _ADAM_BETA1**step)) / (np.sqrt(v / (1 - _ADAM_BETA2**step)) + _ADAM_EPS)
+        g_unit *= g_unit
+        v += (1 - _ADAM_BETA2) * g_unit
+        step_denominator = np.sqrt(v / (1 - _ADAM_BETA2**step))
+        step_denominator += _ADAM_EPS
+        z = z - lr * (m / (1 - _ADAM_BETA1**step)) / step_denominator
     return z
 
 
