@@ -163,8 +163,9 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
             continue
         blob_of_label = np.full(n + 1, -1, dtype=image.dtype)
         blob_of_label[keep + 1] = np.arange(first, first + keep.size)
-        # Windows of different instances overlap; each writes only its own instance's pixels.
-        image_crop[window][sub] = blob_of_label[labels[sub]]
+        # Windows of different instances overlap; each writes only its own instance's pixels
+        # (a masked copy of the whole window: cheaper than two boolean selections).
+        np.copyto(image_crop[window], blob_of_label[labels], where=sub)
         r0, r1 = min(r0, window[0].start), max(r1, window[0].stop)
         c0, c1 = min(c0, window[1].start), max(c1, window[1].stop)
         first += keep.size

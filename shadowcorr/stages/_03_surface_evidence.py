@@ -34,7 +34,7 @@ import numpy as np
 
 from ..bundle import SceneBundle, unit_scale
 from ..config import ShadowCorrConfig
-from ..ops import segment_max, thread_map
+from ..ops import segment_max, thread_map, unique_keys
 from ._02_segments import SegmentImage, Segments
 
 
@@ -178,7 +178,7 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         if config.pixel_tolerance > 0:
             target = _nearest_label(image, row, col, target, config.pixel_tolerance)
         landed = target >= 0
-        key, count = np.unique(src[landed] * s + target[landed], return_counts=True)
+        key, count = unique_keys(src[landed] * s + target[landed], return_counts=True)
         return np.bincount(src, minlength=s), np.bincount(src[landed], minlength=s), key, count
 
     # Views are independent: num_threads of them at once.
