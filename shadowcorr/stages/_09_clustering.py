@@ -251,10 +251,14 @@ def mean_shift(
     ---------
     1. Every point starts a seed.  At each iteration a seed moves to the mean of
        all points within ``bandwidth`` of it (flat kernel, distance <= bandwidth).
-       All moving seeds are updated together: their squared distances to all points
+       All moving seeds are updated together: their squared distances to the points
        come from one matrix product per block of seeds, and the new means from a
-       second product of the boolean membership matrix with the points.  Blocks keep
-       memory bounded (a few tens of MiB) for tens of thousands of points.
+       second product of the boolean membership matrix with the points.  Seeds standing
+       on the same spot are computed once (their paths coincide from there on), and a
+       block of spots is compared only with the points whose projection on the data's
+       principal axis lies within ``bandwidth`` of the spots' projections (the others
+       cannot be in their balls).  Blocks keep memory bounded (a few tens of MiB) for
+       tens of thousands of points.
     2. A seed stops when it moved by at most ``tol * bandwidth`` or after
        ``max_iter`` updates; stopped seeds are frozen and no longer computed.
     3. Each seed's *intensity* is the number of points within ``bandwidth`` of the
