@@ -179,7 +179,8 @@ def knn_on_grid(
     brute force.  The result is exact whenever the k-th neighbour found lies inside the
     ball (everything outside is strictly farther); the few voxels where it does not
     (isolated voxels, scenes smaller than ``k``) try balls of 4 and 16 times the squared
-    radius, then fall back to the brute force over their scene.  So the output is identical to ``knn_within_scene(voxel_index, ...)``
+    radius, then fall back to the brute force over their scene (directly, once a ball would
+    hold more sites than the batch has voxels).  So the output is identical to ``knn_within_scene(voxel_index, ...)``
     and, since uniform scaling keeps the distance order, to the k-NN of the positions
     ``voxel_index * voxel_size``.
 
