@@ -147,7 +147,8 @@ def test_shadows_fill_the_interior():
 
 
 def test_outlier_removal_is_the_papers_step_and_fused_leaves_it_out():
-    assert [ShadowCorrConfig(method=m).outlier_removal for m in ("shadowcorr", "meanshift", "fused")] == [True, True, False]
+    methods = ("shadowcorr", "meanshift", "fused")
+    assert [ShadowCorrConfig(method=m).outlier_removal for m in methods] == [True, True, False]
     assert ShadowCorrConfig(method="fused", remove_outliers=True).outlier_removal
     assert not ShadowCorrConfig(method="shadowcorr", remove_outliers=False).outlier_removal
     # A far stray point among a sphere's shell points: kept without the filter, gone with it.

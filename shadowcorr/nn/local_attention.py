@@ -180,9 +180,9 @@ def knn_on_grid(
     ball (everything outside is strictly farther); the few voxels where it does not
     (isolated voxels, scenes smaller than ``k``) try balls of 4 and 16 times the squared
     radius, then fall back to the brute force over their scene (directly, once a ball would
-    hold more sites than the batch has voxels).  So the output is identical to ``knn_within_scene(voxel_index, ...)``
-    and, since uniform scaling keeps the distance order, to the k-NN of the positions
-    ``voxel_index * voxel_size``.
+    hold more sites than the batch has voxels).  So the output is identical to
+    ``knn_within_scene(voxel_index, ...)`` and, since uniform scaling keeps the distance
+    order, to the k-NN of the positions ``voxel_index * voxel_size``.
 
     Args:
         voxel_index: (N, 3) integer grid coordinates, unique within a scene.

@@ -10,9 +10,10 @@ direction (camera centre -> centroid, or the optical axis) are computed per segm
 
 Downsampling runs on chunks of whole segments (``num_threads`` of them at once), so a
 large field is many small problems.  Nearest neighbours within a segment come from one k-d
-tree per chunk of whole segments, in which segments are moved far apart (``ops.separated``),
-searched on ``num_threads`` threads.  The trees are small_gicp's (exact k-NN; at k = 10 on the sample scene's 74k shell points
-104 ms against pykdtree's 125 ms and scipy cKDTree's 196 ms, one thread).
+tree per chunk of whole segments, in which segments are moved far apart
+(``ops.separated``), searched on ``num_threads`` threads.  The trees are small_gicp's
+(exact k-NN; at k = 10 on the sample scene's 74k shell points 104 ms against pykdtree's
+125 ms and scipy cKDTree's 196 ms, one thread).
 """
 
 from __future__ import annotations
@@ -128,9 +129,9 @@ def segment_shells(segments: Segments, config: ShadowCorrConfig) -> SegmentShell
 
 def _cleaned_points(segments: Segments, config: ShadowCorrConfig) -> tuple[np.ndarray, np.ndarray]:
     """Steps 1-2: downsampling on chunks of whole segments (``num_threads`` at once; each
-    segment's cells are its own, so chunks concatenate in segment order), then (where
-    ``config.outlier_removal``) outlier removal with ``num_threads`` threads searching each k-d tree (small_gicp holds the GIL, so its
-    searches are not run side by side on the pool)."""
+    segment's cells are its own, so chunks concatenate in segment order), then, where
+    ``config.outlier_removal``, outlier removal with ``num_threads`` threads searching each
+    k-d tree (small_gicp holds the GIL, so its searches do not run side by side on the pool)."""
     segment = segments.segment_index
     threads = resolve_threads(config.num_threads)
     chunks = segment_chunks(segment, _CHUNK_RAW_POINTS, min_chunks=threads)

@@ -120,7 +120,7 @@ def _shift_all_seeds(
         # Moving seeds that stand on the same spot move alike from here on (same ball, same
         # mean, same remaining iterations): each spot is computed once.  After one or two
         # iterations most seeds share a spot (the sample scene's 2,242 embeddings: 538 spots
-        # at the second iteration, 91 at the third), so this halves the work.
+        # at the second iteration, 91 at the third).
         spots, spot_of_seed = torch.unique(means[active], dim=0, return_inverse=True)
         spot_projection = (spots - offset) @ axis
         spot_order = torch.argsort(spot_projection)
