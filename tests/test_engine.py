@@ -103,6 +103,35 @@ def test_blob_image_matches_labelling_each_instance_over_the_whole_frame(id_scal
     assert empty.lengths.size == 0 and (empty.labels == -1).all() and empty.labels.shape == (4, 5)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_blobs_of_speckled_masks_match_labelling_each_instance(seed):
+    """Speckle: many tiny blobs, blobs touching only at a corner, values next to each other and
+    equal-sized blobs of one value (ordered by scan order)."""
+    rng = np.random.default_rng(seed)
+    mask = rng.integers(0, 5, size=(rng.integers(20, 50), rng.integers(20, 50))).astype(np.int32)
+    mask[rng.random(mask.shape) < 0.3] = 0
+    mask[:4, :4] = [[7, 0, 7, 0], [0, 7, 0, 7], [7, 0, 7, 0], [0, 7, 0, 7]]  # one blob through its corners
+    for split, min_pixels in ((True, 1), (True, 3), (False, 4)):
+        blobs = find_blobs(mask, split, min_pixels)
+        expected = np.full(mask.shape, -1)
+        instances, components, index = [], [], 0
+        for value in np.unique(mask[mask > 0]):
+            labels, n = ndimage.label(mask == value, structure=np.ones((3, 3), bool)) if split else (
+                (mask == value).astype(int), 1)
+            counts = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+            kept = [lab for lab in np.argsort(-counts, kind="stable") if counts[lab] >= min_pixels]
+            for component, lab in enumerate(kept):
+                expected[labels == lab + 1] = index
+                index += 1
+                instances.append(int(value))
+                components.append(component)
+        np.testing.assert_array_equal(blobs.labels, expected)
+        assert blobs.instance.tolist() == instances and blobs.component.tolist() == components
+        assert blobs.lengths.tolist() == [int((expected == b).sum()) for b in range(index)]
+    assert (find_blobs(mask, True, 1).labels[:4, :4] >= 0).sum() == 8  # the corner-touching blob is one
+    assert len(set(find_blobs(mask, True, 1).labels[:4, :4][mask[:4, :4] == 7].tolist())) == 1
+
+
 def test_segment_image_shifted_moves_indices_to_the_scene_numbering_and_widens_when_needed():
     mask = np.zeros((6, 8), np.int32)
     mask[1:3, 1:3], mask[4:6, 5:8] = 3, 4

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ._take import take
 from .sparse_conv import VoxelHash
 
 __all__ = ["knn_within_scene", "knn_on_grid", "LocalAttention"]
@@ -334,7 +335,7 @@ class LocalAttention(nn.Module):
         outs = []
         for r0 in range(0, n, rows_per_block):
             r1 = min(n, r0 + rows_per_block)
-            x_nb = features[neighbours[r0:r1]]  # (rows, k, dim)
+            x_nb = take(features, neighbours[r0:r1])  # (rows, k, dim)
             logits = torch.bmm(q_folded[r0:r1], x_nb.transpose(1, 2))  # (rows, h, k)
             if valid is not None:
                 # Column 0 (self) is always valid, so no row is fully masked.

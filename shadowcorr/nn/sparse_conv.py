@@ -27,6 +27,8 @@ import math
 import torch
 from torch import nn
 
+from ._take import take
+
 __all__ = ["kernel_offsets", "VoxelHash", "neighbour_index", "SubmanifoldConv3d", "PointwiseConv3d"]
 
 # Keys must stay below 2**63 (one bit of head-room).
@@ -185,9 +187,9 @@ class VoxelHash:
         if self.n == 0:
             return torch.full_like(keys, -1)
         if self.dense is not None:
-            return self.dense[keys].long()
+            return take(self.dense, keys).long()
         pos = torch.searchsorted(self.sorted_keys, keys).clamp_(max=self.n - 1)
-        return torch.where(self.sorted_keys[pos] == keys, self.perm[pos], -1)
+        return torch.where(take(self.sorted_keys, pos) == keys, take(self.perm, pos), -1)
 
     def lookup(self, coords: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
         """Row of the site at ``(batch, coords)`` or -1, for arbitrary queries.
