@@ -178,35 +178,60 @@ def _train_batch(z: np.ndarray, weights: np.ndarray, component: np.ndarray, conf
     domain = (same & ~np.eye(component.shape[1], dtype=bool)[None]).astype(np.float64)
     rows_in_component = np.einsum("mab,mb->ma", same.astype(np.float64), row_ok.astype(np.float64))
     row_scale = (row_ok / np.maximum(rows_in_component, 1) / tau)[..., None]
-    m = np.zeros_like(z)
-    v = np.zeros_like(z)
-    # The loop runs on small arrays, where numpy's per-call overhead is most of the cost: sums
-    # instead of einsum, and the updates in place.
+    # The loop runs on small arrays (the sample scene: 3 problems of 27 segments), where
+    # numpy's per-call cost is most of the cost: sums instead of einsum, and every step
+    # writes into buffers allocated once (same arithmetic, in the same order, as the
+    # plain expressions in the comments).
+    z = z.copy()
+    m, v = np.zeros_like(z), np.zeros_like(z)  # Adam's moments
+    unit, grad, tmp = np.empty_like(z), np.empty_like(z), np.empty_like(z)
+    norm, row_sum = np.empty(z.shape[:-1] + (1,)), np.empty(z.shape[:-1] + (1,))
+    e, q = np.empty(weights.shape), np.empty(weights.shape)
+    unit_t, q_t = unit.transpose(0, 2, 1), q.transpose(0, 2, 1)
+    mul, div = np.multiply, np.divide
+
+    def normalise_rows(x: np.ndarray) -> None:  # x /= max(x.sum(-1), 1e-300)
+        np.add.reduce(x, axis=-1, keepdims=True, out=row_sum)
+        np.maximum(row_sum, 1e-300, out=row_sum)
+        div(x, row_sum, out=x)
+
     for step in range(1, config.segment_embedding_steps + 1):
-        norm = np.sqrt(np.square(z).sum(axis=-1, keepdims=True))
+        mul(z, z, out=tmp)  # norm = max(|z|, 1e-12); unit = z / norm
+        np.add.reduce(tmp, axis=-1, keepdims=True, out=norm)
+        np.sqrt(norm, out=norm)
         np.maximum(norm, 1e-12, out=norm)
-        unit = z / norm
-        e = unit @ unit.transpose(0, 2, 1)
-        e -= 1.0
-        e *= 1.0 / tau
+        div(z, norm, out=unit)
+        np.matmul(unit, unit_t, out=e)  # e = exp((unit unit^T - 1) / tau)
+        np.subtract(e, 1.0, out=e)
+        mul(e, 1.0 / tau, out=e)
         np.exp(e, out=e)
-        q = e * domain
-        q /= np.maximum(q.sum(axis=-1, keepdims=True), 1e-300)
-        e *= weights
-        e /= np.maximum(e.sum(axis=-1, keepdims=True), 1e-300)
-        q -= e
-        q *= row_scale
-        g_unit = (q + q.transpose(0, 2, 1)) @ unit
-        g_unit -= unit * (unit * g_unit).sum(axis=-1, keepdims=True)
-        g_unit /= norm  # the gradient
-        m *= _ADAM_BETA1
-        m += (1 - _ADAM_BETA1) * g_unit
-        v *= _ADAM_BETA2
-        g_unit *= g_unit
-        v += (1 - _ADAM_BETA2) * g_unit
-        step_denominator = np.sqrt(v / (1 - _ADAM_BETA2**step))
-        step_denominator += _ADAM_EPS
-        z = z - lr * (m / (1 - _ADAM_BETA1**step)) / step_denominator
+        mul(e, domain, out=q)  # q: softmax over the domain; e: weighted by w
+        normalise_rows(q)
+        mul(e, weights, out=e)
+        normalise_rows(e)
+        np.subtract(q, e, out=q)  # G = (q - p) * row_scale; grad = (G + G^T) unit
+        mul(q, row_scale, out=q)
+        np.add(q, q_t, out=e)
+        np.matmul(e, unit, out=grad)
+        mul(unit, grad, out=tmp)  # grad -= unit (unit . grad); grad /= norm
+        np.add.reduce(tmp, axis=-1, keepdims=True, out=row_sum)
+        mul(unit, row_sum, out=tmp)
+        np.subtract(grad, tmp, out=grad)
+        div(grad, norm, out=grad)
+        mul(m, _ADAM_BETA1, out=m)  # m = b1 m + (1 - b1) grad
+        mul(grad, 1 - _ADAM_BETA1, out=tmp)
+        np.add(m, tmp, out=m)
+        mul(v, _ADAM_BETA2, out=v)  # v = b2 v + (1 - b2) grad^2
+        mul(grad, grad, out=grad)
+        mul(grad, 1 - _ADAM_BETA2, out=grad)
+        np.add(v, grad, out=v)
+        div(v, 1 - _ADAM_BETA2**step, out=tmp)  # z -= lr (m / (1 - b1^t)) / (sqrt(v / (1 - b2^t)) + eps)
+        np.sqrt(tmp, out=tmp)
+        np.add(tmp, _ADAM_EPS, out=tmp)
+        div(m, 1 - _ADAM_BETA1**step, out=grad)
+        mul(grad, lr, out=grad)
+        div(grad, tmp, out=grad)
+        np.subtract(z, grad, out=z)
     return z
 
 
