@@ -128,6 +128,24 @@ def test_roundtrip_png_depth_is_quantised(tmp_path: Path) -> None:
     assert loaded.views[0].depth[0, 0] == 0.0
 
 
+def test_exr_depth_is_written_as_half_floats_only_when_every_value_is_one() -> None:
+    rng = np.random.default_rng(0)
+    half_exact = (rng.uniform(50, 900, (60, 80)).astype(np.float16)).astype(np.float32)
+    half_exact[0, :3] = [0.0, np.nan, np.inf]
+    not_half = half_exact.copy()
+    not_half[5, 5] += 0.01  # one value between two half floats
+    beyond = half_exact.copy()
+    beyond[7, 7] = 70000.0  # beyond the half range (65504)
+    sizes = {}
+    for name, depth in (("half", half_exact), ("float", not_half), ("beyond", beyond)):
+        data = images.encode_depth_exr(depth)
+        sizes[name] = len(data)
+        np.testing.assert_array_equal(images.read_exr_channel(data), depth)  # exact either way
+    assert sizes["half"] < 0.7 * sizes["float"] and sizes["half"] < 0.7 * sizes["beyond"]
+    lossy = images.read_exr_channel(images.encode_depth_exr(not_half, half=True))
+    assert not np.array_equal(lossy, not_half, equal_nan=True) and np.array_equal(lossy, half_exact, equal_nan=True)
+
+
 @pytest.mark.parametrize("suffix", [".zip", ".tar.gz", ".tar"])
 def test_roundtrip_archives(tmp_path: Path, suffix: str) -> None:
     b = make_bundle()

@@ -10,11 +10,23 @@ import OpenEXR
 from PIL import Image
 
 
-def encode_depth_exr(depth: np.ndarray, *, half: bool = False, channel: str = "Z") -> bytes:
-    """Single-channel ZIP-compressed EXR; float32 by default so every value survives exactly."""
-    arr = np.ascontiguousarray(depth, dtype=np.float16 if half else np.float32)
+def encode_depth_exr(depth: np.ndarray, *, half: bool | None = None, channel: str = "Z") -> bytes:
+    """Single-channel ZIP-compressed EXR in which every value survives exactly.
+
+    ``half=None`` (default) stores half floats when every value is one (depth from a renderer
+    or sensor that writes half floats, as the Unreal sample does): the file is 2.5x smaller
+    and reads faster (1920x1080: 190 vs 473 kB, 16.5 vs 22 ms to float32); otherwise float32.
+    ``half=True`` rounds to half floats (lossy), ``False`` always writes float32.
+    """
+    arr = np.ascontiguousarray(depth, dtype=np.float32)
     if arr.ndim != 2:
         raise ValueError(f"depth must be 2-D, got shape {arr.shape}")
+    if half is None:
+        with np.errstate(over="ignore"):  # values beyond half's range become inf: not exact
+            as_half = arr.astype(np.float16)
+        half = bool(np.array_equal(as_half, arr, equal_nan=True))
+    if half:
+        arr = arr.astype(np.float16)
     f = OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {channel: arr})
     buf = io.BytesIO()
     f.write(buf)

@@ -293,11 +293,11 @@ def clean_depth(depth: np.ndarray, *, inplace: bool = False) -> np.ndarray:
     The input is modified only with ``inplace=True`` (readers own their fresh arrays).
     """
     d = np.asarray(depth, dtype=np.float32)
-    bad = ~(d > 0) | ~np.isfinite(d)  # ~(d > 0) also catches NaN
-    if bad.any():
+    good = (d > 0) & (d < np.inf)  # false for NaN, -inf, +inf and <= 0
+    if not good.all():
         if not d.flags.writeable or (d is depth and not inplace):
             d = d.copy()
-        d[bad] = 0.0
+        np.copyto(d, 0.0, where=~good)
     return d
 
 
