@@ -11,8 +11,8 @@ from pydantic import ValidationError
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle
 from shadowcorr.stages import (
-    SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, link_components, merged_mask_segments,
-    sample_segment_points, segment_confidence, split_mask_ids, surface_evidence, without_landings_on,
+    SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, join_nearest_surface, link_components,
+    merged_mask_segments, sample_segment_points, segment_confidence, split_mask_ids, surface_evidence, without_landings_on,
 )
 
 from .scenes import sphere_scene
@@ -116,7 +116,8 @@ def test_mask_ids_are_never_read_across_views(field, model, method):
 def _graph(view, instance, on_mask, hits, volume=()):
     src, dst, count = (np.array(x, dtype=np.int64) for x in zip(*hits)) if hits else (np.zeros(0, np.int64),) * 3
     s = len(view)
-    surface = SurfaceEvidence(np.full(s, 100), np.array(on_mask), np.array(on_mask), src, dst, count)
+    surface = SurfaceEvidence(np.full(s, 100), np.zeros((100 * s, 3), np.float32), np.array(on_mask), np.array(on_mask),
+                              src, dst, count)
     va, vb, value, mass = (np.array(x) for x in zip(*volume)) if volume else (np.zeros(0, np.int64),) * 2 + (np.zeros(0),) * 2
     return SegmentGraph(np.array(view), np.array(instance), surface, va.astype(np.int64), vb.astype(np.int64),
                         value.astype(float), mass.astype(float))
@@ -293,3 +294,33 @@ def test_surface_evidence_is_computed_only_for_graph_methods(field):
     assert prepare(field, ShadowCorrConfig(method="shadowcorr")).surface is None
     scene = prepare(field, ShadowCorrConfig(method="projection"))
     assert scene.surface is not None and scene.num_voxels == 0  # no shadows are cast
+
+
+def test_a_merged_mask_joins_the_group_that_owns_most_of_its_surface():
+    # View 0 sees rocks P (segment 0, x < 0) and Q (segment 1, x > 0) apart; segment 2 (view 1)
+    # is a mask over both, 70 of its points on P's surface and 30 on Q's; segment 3 (view 1)
+    # is another merged mask, whose points must not vote.  The agglomeration left 2 with Q.
+    rng = np.random.default_rng(0)
+    p_surface = np.c_[rng.uniform(-50, -1, (100, 2)), np.zeros(100)]
+    q_surface = np.c_[rng.uniform(1, 50, (100, 2)), np.zeros(100)]
+    on_p = p_surface[:70] + [0.5, 0.5, 0.5]
+    on_q = q_surface[:30] + [0.5, 0.5, 0.5]
+    points = np.concatenate([p_surface, q_surface, on_p, on_q, q_surface + 0.1]).astype(np.float32)
+    samples = np.array([100, 100, 100, 100])
+    none = np.zeros(0, np.int64)
+    surface = SurfaceEvidence(samples, points, np.zeros((4, 2), np.int64), np.zeros((4, 2), np.int64), none, none,
+                              none)
+    view = np.array([0, 0, 1, 1])
+    merged = np.array([False, False, True, True])
+    config = ShadowCorrConfig(method="fused")
+    labels = np.array([0, 1, 1, 3])
+    joined = join_nearest_surface(labels, surface, view, merged, config)
+    assert joined.tolist() == [0, 1, 0, 1]  # 2 to P (70 of 100 votes); 3 lies on Q's surface
+    # Too few votes (points farther than the tolerance do not vote), or no majority: no move.
+    far = config.with_options(projection_depth_tolerance=0.1)
+    assert join_nearest_surface(labels, surface, view, merged, far).tolist() == [0, 1, 1, 3]
+    split = surface.points.copy()
+    split[200:300] = np.concatenate([on_p[:50], on_q[:30], on_q[:20]])
+    even = replace(surface, points=split)
+    assert join_nearest_surface(labels, even, view, merged, config).tolist() == [0, 1, 1, 1]
+    assert join_nearest_surface(labels, surface, view, np.zeros(4, bool), config) is labels

@@ -204,6 +204,21 @@ def test_merge_touching_fuses_the_share_of_touching_pairs(scene):
         assert perturb._touching_pairs(view.mask, 8).shape[0] == 0
 
 
+def test_merge_touching_leaves_a_lone_blob_of_a_fused_mask_its_own_id_and_object(scene):
+    """A mask with a second blob elsewhere: only the part that touches the other mask is fused."""
+    view = scene.views[0]
+    mask = np.zeros_like(view.mask)
+    mask[20:60, 20:60], mask[20:60, 60:100] = 1, 2  # touching
+    mask[120:140, 200:230] = 2  # mask 2's lone blob, touching nothing
+    bundle = replace(scene, views=[replace(view, mask=mask)], ground_truth="instance")
+    out = perturb.merge_touching(bundle, _rng(0), 1.0)
+    fused = out.views[0].mask
+    assert np.all(fused[20:60, 20:100] == fused[20, 20]) and fused[20, 20] > 2
+    assert np.all(fused[120:140, 200:230] == 2), "the lone blob keeps its id"
+    table = out.views[0].instance_objects
+    assert table[2] == 2 and table[int(fused[20, 20])] in (1, 2)
+
+
 def test_merge_share_counts_pairs(scene):
     pairs = sum(perturb._touching_pairs(v.mask, 8).shape[0] for v in scene.views)
     assert pairs >= 4

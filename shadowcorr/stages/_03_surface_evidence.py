@@ -43,6 +43,7 @@ class SurfaceEvidence:
     """Landing counts of every segment's sample points in the other views (see the module docstring)."""
 
     samples: np.ndarray  # (S,) sample points drawn from each segment
+    points: np.ndarray  # (sum(samples), 3) float32 the sample points, segment by segment (config units, world)
     visible: np.ndarray  # (S, V) int64 sample points of a visible in view j
     on_mask: np.ndarray  # (S, V) int64 visible points of a landing on some segment of view j
     hit_source: np.ndarray  # (H,) int64 segment a
@@ -57,7 +58,8 @@ class SurfaceEvidence:
     def empty(cls, num_segments: int, num_views: int) -> "SurfaceEvidence":
         none = np.zeros(0, dtype=np.int64)
         grid = np.zeros((num_segments, num_views), dtype=np.int64)
-        return cls(np.zeros(num_segments, np.int64), grid, grid.copy(), none, none, none)
+        return cls(np.zeros(num_segments, np.int64), np.zeros((0, 3), np.float32), grid, grid.copy(), none, none,
+                   none)
 
 
 def sample_segment_points(points: np.ndarray, lengths: np.ndarray, per_segment: int) -> tuple[np.ndarray, np.ndarray]:
@@ -195,4 +197,5 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
     key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
     count = np.concatenate(counts) if counts else np.zeros(0, np.int64)
     # A pair (a, b) appears in one view only (b's own view), so keys never repeat.
-    return SurfaceEvidence(samples, visible, on_mask, key // s, key % s, count.astype(np.int64))
+    points = np.stack(xyz, axis=1).astype(np.float32)
+    return SurfaceEvidence(samples, points, visible, on_mask, key // s, key % s, count.astype(np.int64))

@@ -36,8 +36,9 @@ Before grouping, segments that look like one mask drawn over two objects are fou
 (:func:`merged_mask_segments`: the segment spreads over two segments of another view that
 both land back on it and that a third view sees apart), and landings *on* them are taken
 out of the evidence (:func:`without_landings_on`): everything under a merged mask lands on
-it, so those landings would chain its two objects together.  Its own landings stay, so the
-merged mask still joins the object most of it lands on.
+it, so those landings would chain its two objects together.  Its own landings stay.  After
+the agglomeration each merged mask joins the group that owns most of its surface, read from
+the nearest sample points of the other views (:func:`join_nearest_surface`).
 
 Each segment's ``confidence`` compares how strongly it is linked to its own group with the
 strongest alternative (another group, or standing alone); see :func:`segment_confidence`.
@@ -51,6 +52,7 @@ import heapq
 from dataclasses import dataclass, replace
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -449,8 +451,8 @@ def without_landings_on(surface: SurfaceEvidence, view: np.ndarray, drop: np.nda
     """The surface evidence with every landing *on* a segment in ``drop`` taken out (hits and trials).
 
     Landing on a merged mask says only that a point belongs to one of the objects under it:
-    no evidence for or against any one of them.  The segment's own landings stay, so it still
-    joins the object most of it lands on.
+    no evidence for or against any one of them.  The segment's own landings stay (which object
+    it finally joins is settled by :func:`join_nearest_surface`).
     """
     gone = drop[surface.hit_target]
     if not gone.any():
@@ -478,6 +480,7 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
     if config.method == "fused":
         volume = volume_pairs(scene, embeddings, config)
     instance, surface = scene.segment_instance, scene.surface
+    merged = np.zeros(s, dtype=bool)
     if config.method == "fused":
         instance = split_mask_ids(surface, scene.segment_view, instance, config)
         merged = merged_mask_segments(surface, scene.segment_view, instance, config)
@@ -486,5 +489,38 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
     if config.method == "projection":
         labels = link_components(scene.surface, scene.segment_view, config)
     else:
-        labels = agglomerate(graph, config)
+        labels = join_nearest_surface(agglomerate(graph, config), surface, scene.segment_view, merged, config)
     return labels[:s], segment_confidence(graph, labels, config)
+
+
+def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.ndarray, segments: np.ndarray,
+                         config: ShadowCorrConfig) -> np.ndarray:
+    """``labels`` with each of ``segments`` (merged masks) moved to the group that owns more than
+    half of its surface, where one does.
+
+    A mask drawn over two objects belongs, for its view, to the object under most of it.
+    Its landings only count its points that other views see, and its linkage mixes in the
+    volume it shares with both objects, so neither tells which object that is.  Its sample
+    points do: each one that has a sample point of another view's segment (other merged
+    masks left out) within ``projection_depth_tolerance`` votes for that segment's group;
+    with at least ``projection_min_points`` votes and a majority, the mask joins that group.
+    One k-d tree per view that holds a merged mask; nothing runs when there is none.
+    """
+    if not segments.any():
+        return labels
+    owner = np.repeat(np.arange(view.size), surface.samples)
+    out = labels.copy()
+    for v in np.unique(view[segments]).tolist():
+        others = np.flatnonzero((view[owner] != v) & ~segments[owner])
+        if others.size == 0:
+            continue
+        tree = KDTree(surface.points[others])
+        for m in np.flatnonzero(segments & (view == v)).tolist():
+            distance, nearest = tree.query(surface.points[owner == m], k=1)
+            near = distance <= config.projection_depth_tolerance
+            if near.sum() < config.projection_min_points:
+                continue
+            groups, votes = np.unique(labels[owner[others[nearest[near]]]], return_counts=True)
+            if votes.max() > 0.5 * near.sum():
+                out[m] = groups[np.argmax(votes)]
+    return out

@@ -75,6 +75,7 @@ _EXPORTS = {
     "group_by_evidence": "_09_grouping",
     "link_components": "_09_grouping",
     "merged_mask_segments": "_09_grouping",
+    "join_nearest_surface": "_09_grouping",
     "segment_confidence": "_09_grouping",
     "split_mask_ids": "_09_grouping",
     "without_landings_on": "_09_grouping",
@@ -106,8 +107,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._08_volume_evidence import segment_embeddings, volume_pairs
     from ._09_clustering import cluster_voxels, majority_vote, mean_shift, merge_small_clusters
     from ._09_grouping import (
-        SegmentGraph, agglomerate, group_by_evidence, link_components, merged_mask_segments, segment_confidence,
-        split_mask_ids, without_landings_on,
+        SegmentGraph, agglomerate, group_by_evidence, join_nearest_surface, link_components, merged_mask_segments,
+        segment_confidence, split_mask_ids, without_landings_on,
     )
     from ._10_assignment import (
         evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote,

@@ -280,7 +280,10 @@ def merge_touching(bundle: SceneBundle, rng: np.random.Generator, share: float, 
 
     A pair is two different ids of one view with ``connectivity``-adjacent pixels.
     Chosen pairs that share an id fuse transitively.  Each fused mask gets a fresh id,
-    mapped to the object owning most of its pixels.
+    mapped to the object owning most of its pixels.  Only the connected regions where the
+    masks touch are fused, as a segmenter that cannot see a boundary would fuse them: a
+    piece of a mask that touches none of the others (a blob of its own, elsewhere in the
+    image) keeps its id and its object, instead of carrying the majority's object.
     """
     if connectivity not in (4, 8):
         raise ValueError(f"connectivity must be 4 or 8, got {connectivity}")
@@ -301,18 +304,41 @@ def merge_touching(bundle: SceneBundle, rng: np.random.Generator, share: float, 
         graph = coo_matrix((np.ones(len(pairs)), (inverse[:, 0], inverse[:, 1])), shape=(nodes.size,) * 2)
         n_groups, group = connected_components(graph, directed=False)
         new_ids = int(v.mask.max()) + 1 + np.arange(n_groups)
-        masks.append(_remap(v.mask, nodes, new_ids[group]))
+        mask = _remap(v.mask, nodes, new_ids[group])
+        mask = _unfuse_lone_pieces(mask, v.mask, new_ids, connectivity)
+        masks.append(mask)
         if table is not None:
-            ids, pixels = np.unique(v.mask[np.isin(v.mask, nodes)], return_counts=True)
+            fused = mask > int(v.mask.max())
+            pairs, pixels = np.unique(np.stack([mask[fused], v.mask[fused]]).astype(np.int64), axis=1,
+                                      return_counts=True)
             for g in range(n_groups):
                 votes: dict[int, int] = {}  # object -> pixels of the fused mask it owns
-                for i, n in zip(ids, pixels):
-                    if group[np.searchsorted(nodes, i)] == g and int(i) in table:
+                for i, n in zip(pairs[1][pairs[0] == new_ids[g]], pixels[pairs[0] == new_ids[g]]):
+                    if int(i) in table:
                         votes[table[int(i)]] = votes.get(table[int(i)], 0) + int(n)
                 if votes:
                     table[int(new_ids[g])] = min(votes, key=lambda o: (-votes[o], o))
         tables.append(table)
     return _with_masks(bundle, masks, tables)
+
+
+def _unfuse_lone_pieces(mask: np.ndarray, original: np.ndarray, fused_ids: np.ndarray, connectivity: int
+                        ) -> np.ndarray:
+    """``mask`` with every connected piece of a fused id that covers one original id only given
+    that id back (a blob of one mask that touches none of the others it was fused with)."""
+    structure = np.ones((3, 3), bool) if connectivity == 8 else None
+    out = mask.copy()
+    for new in fused_ids.tolist():
+        pieces, n = ndimage.label(mask == new, structure=structure)
+        if n < 2:
+            continue
+        inside = pieces > 0
+        ids = np.unique(np.stack([pieces[inside], original[inside]]).astype(np.int64), axis=1)
+        kinds = np.bincount(ids[0], minlength=n + 1)  # distinct original ids per piece
+        lone = np.flatnonzero(kinds == 1)
+        restore = np.isin(pieces, lone)
+        out[restore] = original[restore]
+    return out
 
 
 def relabel_ids(bundle: SceneBundle, rng: np.random.Generator) -> SceneBundle:
