@@ -25,6 +25,7 @@ from ..config import ShadowCorrConfig
 from ..errors import DepthRangeError
 from ..ops import thread_map
 
+
 @dataclass
 class SegmentImage:
     """A view's image of segment indices (-1: no segment), kept as the window of the frame that
@@ -163,9 +164,9 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
         # its instance one row up, found by one search per run.
         order = np.lexsort((col, row, instance_of_run))
         key = instance_of_run[order] * (crop.shape[0] + 1) + row[order]
-        below = instance_of_run * (crop.shape[0] + 1) + row - 1  # key of the row above, same instance
-        lo = np.searchsorted(key, below, side="left")
-        hi = np.searchsorted(key, below, side="right")
+        above = instance_of_run * (crop.shape[0] + 1) + row - 1  # key of the row above, same instance
+        lo = np.searchsorted(key, above, side="left")
+        hi = np.searchsorted(key, above, side="right")
         count = hi - lo
         run_b = np.repeat(np.arange(start.size), count)
         run_a = order[np.repeat(lo, count) + (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count))]
@@ -185,7 +186,7 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
     kept = kept[np.lexsort((first_pixel[kept], -size[kept], instance_of_blob[kept]))]
     if kept.size == 0:
         return Blobs(image, empty, empty, empty)
-    index = np.full(num + 1, -1, dtype=image.dtype)  # blob -> index, -1 for dropped blobs and background
+    index = np.full(num, -1, dtype=image.dtype)  # blob -> its index, -1 for a dropped blob
     index[kept] = np.arange(kept.size)
     instance = instance_of_blob[kept]
     first_of_instance = np.flatnonzero(np.r_[True, instance[1:] != instance[:-1]])
