@@ -21,12 +21,11 @@ def encode_depth_exr(depth: np.ndarray, *, half: bool | None = None, channel: st
     arr = np.ascontiguousarray(depth, dtype=np.float32)
     if arr.ndim != 2:
         raise ValueError(f"depth must be 2-D, got shape {arr.shape}")
-    if half is None:
+    if half is not False:
         with np.errstate(over="ignore"):  # values beyond half's range become inf: not exact
             as_half = arr.astype(np.float16)
-        half = bool(np.array_equal(as_half, arr, equal_nan=True))
-    if half:
-        arr = arr.astype(np.float16)
+        if half or np.array_equal(as_half, arr, equal_nan=True):
+            arr = as_half
     f = OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {channel: arr})
     buf = io.BytesIO()
     f.write(buf)

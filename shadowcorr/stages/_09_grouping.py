@@ -509,6 +509,7 @@ def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.
     if not segments.any():
         return labels
     owner = np.repeat(np.arange(view.size), surface.samples)
+    end = np.cumsum(surface.samples)
     out = labels.copy()
     for v in np.unique(view[segments]).tolist():
         others = np.flatnonzero((view[owner] != v) & ~segments[owner])
@@ -516,7 +517,7 @@ def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.
             continue
         tree = KDTree(surface.points[others])
         for m in np.flatnonzero(segments & (view == v)).tolist():
-            distance, nearest = tree.query(surface.points[owner == m], k=1)
+            distance, nearest = tree.query(surface.points[end[m] - surface.samples[m]: end[m]], k=1)
             near = distance <= config.projection_depth_tolerance
             if near.sum() < config.projection_min_points:
                 continue

@@ -311,13 +311,13 @@ def merge_touching(bundle: SceneBundle, rng: np.random.Generator, share: float, 
             fused = mask > int(v.mask.max())
             pairs, pixels = np.unique(np.stack([mask[fused], v.mask[fused]]).astype(np.int64), axis=1,
                                       return_counts=True)
-            for g in range(n_groups):
-                votes: dict[int, int] = {}  # object -> pixels of the fused mask it owns
-                for i, n in zip(pairs[1][pairs[0] == new_ids[g]], pixels[pairs[0] == new_ids[g]]):
-                    if int(i) in table:
-                        votes[table[int(i)]] = votes.get(table[int(i)], 0) + int(n)
-                if votes:
-                    table[int(new_ids[g])] = min(votes, key=lambda o: (-votes[o], o))
+            votes: dict[int, dict[int, int]] = {}  # fused id -> object -> pixels of it the object owns
+            for new, old, n in zip(*pairs.tolist(), pixels.tolist()):
+                if old in table:
+                    per_object = votes.setdefault(new, {})
+                    per_object[table[old]] = per_object.get(table[old], 0) + n
+            for new, per_object in votes.items():
+                table[new] = min(per_object, key=lambda o: (-per_object[o], o))
         tables.append(table)
     return _with_masks(bundle, masks, tables)
 
