@@ -121,6 +121,16 @@ def test_roundtrip_directory(tmp_path: Path, depth_format: str, mask_format: str
     assert_same(b, load_bundle(out / "manifest.json"))
 
 
+@pytest.mark.parametrize("high_id", [255, 256, 65535])
+def test_mask_png_round_trip_is_exact_in_8_and_16_bits(high_id: int) -> None:
+    rng = np.random.default_rng(high_id)
+    mask = rng.integers(0, 40, (90, 120))
+    mask[10:20, 30:70] = high_id  # flat regions, as a segmenter writes them
+    data = images.encode_mask_png(mask)
+    assert Image.open(io.BytesIO(data)).mode == ("L" if high_id <= 255 else "I;16")
+    np.testing.assert_array_equal(images.read_mask_png(data), mask)
+
+
 def test_roundtrip_png_depth_is_quantised(tmp_path: Path) -> None:
     b = make_bundle()
     loaded = load_bundle(write_bundle(b, tmp_path / "b", depth_format="png", depth_png_scale=0.01))

@@ -11,12 +11,16 @@ from PIL import Image
 
 
 def encode_depth_exr(depth: np.ndarray, *, half: bool | None = None, channel: str = "Z") -> bytes:
-    """Single-channel ZIP-compressed EXR in which every value survives exactly.
+    """Single-channel EXR in which every value survives exactly.
 
     ``half=None`` (default) stores half floats when every value is one (depth from a renderer
-    or sensor that writes half floats, as the Unreal sample does): the file is 2.5x smaller
-    and reads faster (1920x1080: 190 vs 473 kB, 16.5 vs 22 ms to float32); otherwise float32.
+    or sensor that writes half floats, as the Unreal sample does): the file is smaller and
+    reads faster (1920x1080: 288 vs 473 kB, 12.5 vs 22 ms to float32); otherwise float32.
     ``half=True`` rounds to half floats (lossy), ``False`` always writes float32.
+
+    Half floats are PXR24-compressed: lossless for half, and it decodes in 6.9 ms where ZIP
+    takes 10.7 (1920x1080), for a file a third larger.  Float32 is ZIP-compressed (PXR24
+    would drop its 8 low mantissa bits).
     """
     arr = np.ascontiguousarray(depth, dtype=np.float32)
     if arr.ndim != 2:
@@ -26,7 +30,8 @@ def encode_depth_exr(depth: np.ndarray, *, half: bool | None = None, channel: st
             as_half = arr.astype(np.float16)
         if half or np.array_equal(as_half, arr, equal_nan=True):
             arr = as_half
-    f = OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {channel: arr})
+    compression = OpenEXR.PXR24_COMPRESSION if arr.dtype == np.float16 else OpenEXR.ZIP_COMPRESSION
+    f = OpenEXR.File({"compression": compression, "type": OpenEXR.scanlineimage}, {channel: arr})
     buf = io.BytesIO()
     f.write(buf)
     return buf.getvalue()
@@ -55,7 +60,11 @@ def encode_depth_png16(depth: np.ndarray, scale: float) -> bytes:
 
 
 def encode_mask_png(mask: np.ndarray) -> bytes:
-    """Instance ids as a single-channel PNG: 8-bit when ids <= 255, else 16-bit."""
+    """Instance ids as a single-channel PNG: 8-bit when ids <= 255, else 16-bit.
+
+    Written with zlib level 1: a mask of a few flat regions is already small (1920x1080: 19 vs
+    9 kB at the default level), and it decodes in about half the time (5.5 vs 10 ms).
+    """
     m = np.asarray(mask)
     if m.ndim != 2:
         raise ValueError(f"mask must be 2-D, got shape {m.shape}")
@@ -63,7 +72,7 @@ def encode_mask_png(mask: np.ndarray) -> bytes:
     if lo < 0 or hi > 65535:
         raise ValueError(f"mask ids {lo}..{hi} do not fit a 16-bit PNG; use mask_format='npy'")
     buf = io.BytesIO()
-    Image.fromarray(m.astype(np.uint8 if hi <= 255 else np.uint16)).save(buf, format="PNG")
+    Image.fromarray(m.astype(np.uint8 if hi <= 255 else np.uint16)).save(buf, format="PNG", compress_level=1)
     return buf.getvalue()
 
 
