@@ -14,13 +14,13 @@ def encode_depth_exr(depth: np.ndarray, *, half: bool | None = None, channel: st
     """Single-channel EXR in which every value survives exactly.
 
     ``half=None`` (default) stores half floats when every value is one (depth from a renderer
-    or sensor that writes half floats, as the Unreal sample does): the file is smaller and
-    reads faster (1920x1080: 234-288 vs 473 kB, 12.5 vs 22 ms to float32); otherwise float32.
+    or sensor that writes half floats, as the Unreal sample does), otherwise float32;
     ``half=True`` rounds to half floats (lossy), ``False`` always writes float32.
 
-    Half floats are PXR24-compressed: lossless for half, and it decodes in 6.9 ms where ZIP
-    takes 10.7 (1920x1080), for files a third larger (the sample's views: 234-288 vs 184-203
-    kB).  Float32 is ZIP-compressed (PXR24 would drop its 8 low mantissa bits).
+    Half floats are PXR24-compressed, which is lossless for them and decodes faster than ZIP
+    (1920x1080: 6.9 vs 10.7 ms) for files a third larger (the sample's views: 234-288 vs
+    184-203 kB; float32 with ZIP: 473 kB, 22 ms to read).  Float32 is ZIP-compressed: PXR24
+    would drop its 8 low mantissa bits.
     """
     arr = np.ascontiguousarray(depth, dtype=np.float32)
     if arr.ndim != 2:
