@@ -166,8 +166,9 @@ class View:
     name: str
     pose: np.ndarray  # (4, 4) float64, camera-to-world, OpenCV convention
     intrinsics: Intrinsics | None = None
-    depth: np.ndarray | None = None  # (H, W) float32 z-depth in bundle units; <= 0 or non-finite = invalid
-    mask: np.ndarray | None = None  # (H, W) int32 instance ids, 0 = background
+    # (H, W) z-depth in bundle units, float32 or float16 (half-float EXRs load as stored); <= 0 or non-finite = invalid
+    depth: np.ndarray | None = None
+    mask: np.ndarray | None = None  # (H, W) integer instance ids (loaders: uint8/uint16 as stored, else int32), 0 = background
     instance_objects: dict[int, int] | None = None  # ground truth only
 
     @property

@@ -70,7 +70,7 @@ def assert_same(a: SceneBundle, b: SceneBundle, depth_atol: float = 0.0) -> None
     for va, vb in zip(a.views, b.views):
         np.testing.assert_allclose(va.pose, vb.pose, atol=1e-12)
         assert va.intrinsics == vb.intrinsics
-        assert vb.depth.dtype == np.float32 and vb.mask.dtype == np.int32
+        assert vb.depth.dtype in (np.float32, np.float16) and vb.mask.dtype in (np.uint8, np.uint16, np.int32)
         np.testing.assert_allclose(va.depth, vb.depth, atol=depth_atol, rtol=0)
         np.testing.assert_array_equal(va.mask, vb.mask)
 
@@ -155,6 +155,25 @@ def test_exr_depth_is_written_as_half_floats_only_when_every_value_is_one() -> N
     lossy = images.read_exr_channel(images.encode_depth_exr(not_half, half=True))
     assert not np.array_equal(lossy, not_half, equal_nan=True) and np.array_equal(lossy, half_exact, equal_nan=True)
 
+
+
+def test_half_float_depth_loads_as_stored_and_is_cleaned_like_float32() -> None:
+    """read_depth keeps half-float EXR depth as float16 (scale 1) with the same values and the
+    same invalid pixels as the float32 reading; a scale makes it float32."""
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(50, 900, (40, 60)).astype(np.float16).astype(np.float32)
+    depth[0, :8] = [0.0, -0.0, -3.0, np.nan, np.inf, -np.inf, np.float16(6e-8), 65504.0]  # a half subnormal, the largest half
+    data = images.encode_depth_exr(depth)
+    kept = images.read_depth(data, "exr")
+    assert kept.dtype == np.float16
+    expected = images.clean_depth(depth)
+    np.testing.assert_array_equal(kept.astype(np.float32), expected)
+    assert np.array_equal(kept[0, :8].astype(np.float32), [0, 0, 0, 0, 0, 0, np.float16(6e-8), 65504])
+    assert not np.signbit(kept).any()  # -0 and negatives become +0, the one invalid value
+    assert images.has_valid_depth(kept) and not images.has_valid_depth(images.clean_depth(depth[0, 1:6].copy()))
+    scaled = images.read_depth(data, "exr", scale=0.5)
+    assert scaled.dtype == np.float32
+    np.testing.assert_array_equal(scaled, images.clean_depth(depth * np.float32(0.5)))
 
 @pytest.mark.parametrize("suffix", [".zip", ".tar.gz", ".tar"])
 def test_roundtrip_archives(tmp_path: Path, suffix: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -314,6 +315,20 @@ def test_result_is_independent_of_units_and_view_order(model):
     key = lambda r: {(s.view, s.instance): s.object for s in r.segments}  # noqa: E731
     a, b = key(base), key(reordered)
     assert same_partition([a[k] for k in sorted(a)], [b[k] for k in sorted(a)])
+
+
+def test_narrow_arrays_as_loaded_give_the_result_of_float32_depth_and_int32_masks(model):
+    """Half-float EXR depth loads as float16 and PNG masks as uint8/uint16 (see read_depth_exr,
+    read_mask_png); every stage reads them as the values they hold, so only the dtypes differ."""
+    bundle = sphere_scene(FIELD_CENTRES, FIELD_RADII, cameras=3, width=480, height_px=270)
+    narrow = [replace(v, depth=v.depth.astype(np.float16), mask=v.mask.astype(np.uint8)) for v in bundle.views]
+    wide = [replace(v, depth=n.depth.astype(np.float32), mask=n.mask.astype(np.int32))
+            for v, n in zip(bundle.views, narrow)]
+    a, b = (correspond(replace(bundle, views=views), model, ShadowCorrConfig(refine_poses=True))
+            for views in (wide, narrow))
+    assert a.labels == b.labels and len(set(a.labels)) > 1
+    assert [s.model_dump() for s in a.segments] == [s.model_dump() for s in b.segments]
+    assert a.poses == b.poses
 
 
 def test_ground_truth_never_reaches_the_features():

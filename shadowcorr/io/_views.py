@@ -57,7 +57,7 @@ def decode_view(
                 )
                 if spec.depth.kind == "range":
                     depth = range_to_z(depth, intr.fx, intr.fy, intr.cx, intr.cy)
-                if not depth.any():
+                if not images.has_valid_depth(depth):
                     warnings.append(f"{vloc}: depth has no valid pixel (all <= 0 or non-finite)")
             except BundleError as e:
                 problems += e.problems

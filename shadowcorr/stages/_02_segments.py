@@ -230,7 +230,7 @@ def _pixel_stride(view: View, blob_image: np.ndarray, max_depth: float, scale: f
     points fill many cells."""
     if not config.subsample_pixels:
         return 1
-    d = view.depth[::4, ::4][blob_image[::4, ::4] >= 0]
+    d = np.asarray(view.depth[::4, ::4][blob_image[::4, ::4] >= 0], dtype=np.float32)  # float16: compare in float32
     d = d[np.isfinite(d) & (d > 0) & (d <= max_depth)]
     if d.size == 0:
         return 1
@@ -316,7 +316,7 @@ def _view_segments(view: View, scale: float, config: ShadowCorrConfig) -> _ViewS
     r0, r1, c0, c1 = blobs.bounds
     r0, c0 = -(-r0 // stride) * stride, -(-c0 // stride) * stride
     on_grid = blobs.labels[r0:r1:stride, c0:c1:stride]
-    depth = view.depth[r0:r1:stride, c0:c1:stride]
+    depth = np.asarray(view.depth[r0:r1:stride, c0:c1:stride], dtype=np.float32)  # float16: compare in float32
     chosen = (on_grid >= 0) & np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle)
     on_grid_pixel = np.flatnonzero(chosen)
     # Grouped by blob, raster order within a blob: a stable sort, radix on int16 indices.
