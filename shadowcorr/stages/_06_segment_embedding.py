@@ -87,7 +87,7 @@ def train_segment_embeddings(cooc: np.ndarray | csr_matrix, centroids: np.ndarra
     """
     cooc = csr_matrix(cooc, dtype=np.float64) if not issparse(cooc) else cooc.tocsr()
     z = initial_vectors(centroids, config)
-    if config.segment_embedding_steps == 0 or cooc.nnz == 0:
+    if config.embedding_steps == 0 or cooc.nnz == 0:
         return z.astype(np.float32)
     w = _weights(cooc, config)
     if config.segment_embedding_scope == "scene":  # one problem: every segment, one domain
@@ -172,7 +172,7 @@ def _train_batch(z: np.ndarray, weights: np.ndarray, component: np.ndarray, conf
     rows and columns index the same vectors, dL/du = (G + G^T) u with G = (q - p) / (rows tau).
     Padded slots get no gradient and stay at zero.
     """
-    tau, lr = config.segment_embedding_tau, config.segment_embedding_lr
+    tau, lr = config.segment_embedding_tau, config.embedding_lr
     row_ok = weights.sum(axis=-1) > 0
     same = (component[:, :, None] == component[:, None, :]) & (component >= 0)[:, :, None]
     domain = (same & ~np.eye(component.shape[1], dtype=bool)[None]).astype(np.float64)
@@ -195,7 +195,7 @@ def _train_batch(z: np.ndarray, weights: np.ndarray, component: np.ndarray, conf
         np.maximum(row_sum, 1e-300, out=row_sum)
         div(x, row_sum, out=x)
 
-    for step in range(1, config.segment_embedding_steps + 1):
+    for step in range(1, config.embedding_steps + 1):
         mul(z, z, out=tmp)  # norm = max(|z|, 1e-12); unit = z / norm
         np.add.reduce(tmp, axis=-1, keepdims=True, out=norm)
         np.sqrt(norm, out=norm)
