@@ -392,8 +392,8 @@ def rgb_to_ids(rgb: np.ndarray, palette: Mapping[int, Sequence[int]]) -> tuple[n
 
 def _check_ids(arr: np.ndarray, loc: str) -> np.ndarray:
     """Integer ids -> int32, refusing negatives and values that do not fit; 8- and 16-bit unsigned ids
-    (every PNG) are kept as they are: widening costs more than decoding, and the blob search reads a
-    narrow mask twice as fast (1.4 + 3.7 ms a 1080p view)."""
+    (every PNG) are kept as they are and bools become uint8: widening took 1.4 ms a 1080p view, and
+    the blob search reads a narrow mask faster (33 -> 28 ms for the sample scene's four masks)."""
     if arr.dtype.kind == "b":
         return arr.view(np.uint8)
     if arr.dtype in (np.uint8, np.uint16):
@@ -449,7 +449,7 @@ def read_mask_png_rgb(
 def read_mask_npy(
     data: bytes, *, shape: tuple[int, int] | None = None, max_pixels: int = DEFAULT_MAX_PIXELS, loc: str = ""
 ) -> np.ndarray:
-    """2-D integer (or bool) ``.npy`` of instance ids -> int32 (uint8 / uint16 and bool: 8 or 16 bits, as stored)."""
+    """2-D integer (or bool) ``.npy`` of instance ids -> uint8 / uint16 as stored, bool as uint8, else int32."""
     arr = _image_from_npy(data, what="mask", shape=shape, max_pixels=max_pixels, loc=loc)
     return _check_ids(arr, loc)
 
