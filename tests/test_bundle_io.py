@@ -127,8 +127,11 @@ def test_mask_png_round_trip_is_exact_in_8_and_16_bits(high_id: int) -> None:
     mask = rng.integers(0, 40, (90, 120))
     mask[10:20, 30:70] = high_id  # flat regions, as a segmenter writes them
     data = images.encode_mask_png(mask)
-    assert Image.open(io.BytesIO(data)).mode == ("L" if high_id <= 255 else "I;16")
+    image = Image.open(io.BytesIO(data))
+    assert image.mode == ("P" if high_id <= 255 else "I;16")
     np.testing.assert_array_equal(images.read_mask_png(data), mask)
+    if high_id <= 255:  # the palette is grey: a viewer shows each id as that grey level
+        np.testing.assert_array_equal(np.asarray(image.convert("L")), mask)
 
 
 def test_roundtrip_png_depth_is_quantised(tmp_path: Path) -> None:

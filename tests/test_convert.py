@@ -101,7 +101,7 @@ def test_convert_ue_writes_a_bundle_equal_to_the_in_memory_scene(tmp_path: Path,
     assert manifest["units"] == "cm" and manifest["ground_truth"] == "instance"
     assert manifest["views"][0]["depth"]["format"] == "exr"
     mask_png = Image.open(out / manifest["views"][0]["mask"]["file"])
-    assert mask_png.mode == "L"  # 8-bit single channel, value = class id
+    assert mask_png.mode == "P"  # 8-bit single channel (palette indices), value = class id
     loaded = load_bundle(out)
     ref = ue01.views[1]
     got = loaded.views[0]

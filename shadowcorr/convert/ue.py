@@ -189,9 +189,10 @@ def convert_ue(
 ) -> Path:
     """Write one set of the dataset as a bundle directory; returns ``out_dir``.
 
-    Units ``cm``, ``ground_truth = "instance"``; depth as float32 EXR (or ``.npy``)
-    holding the original values; masks as 8-bit single-channel PNGs whose value is
-    the rock (class) id.
+    Units ``cm``, ``ground_truth = "instance"``; depth as EXR (or ``.npy``) holding the
+    original values (half floats, as the dataset stores them); masks as 8-bit single-channel
+    PNGs (palette indices, grey palette: see ``encode_mask_png``) whose value is the rock
+    (class) id.
     """
     views, warnings = _read_ue_views(dataset_dir, set_id, cameras, focal_px, camera_table)
     for w in warnings:
