@@ -79,7 +79,8 @@ def encode_mask_png(mask: np.ndarray) -> bytes:
     if lo < 0 or hi > 65535:
         raise ValueError(f"mask ids {lo}..{hi} do not fit a 16-bit PNG; use mask_format='npy'")
     if hi <= 255:
-        image = Image.fromarray(m.astype(np.uint8)).convert("P")  # "L" -> "P" keeps every value as its index
+        ids = np.ascontiguousarray(m, dtype=np.uint8)
+        image = Image.frombytes("P", (ids.shape[1], ids.shape[0]), ids.tobytes())  # the bytes are the indices
         image.putpalette(_GREY_PALETTE)
     else:
         image = Image.fromarray(m.astype(np.uint16))

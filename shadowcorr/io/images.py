@@ -311,18 +311,22 @@ def clean_depth(depth: np.ndarray, *, inplace: bool = False) -> np.ndarray:
     # Read as unsigned integers, every value to be zeroed lies above the largest finite float:
     # inf, NaN and everything with the sign bit set (negatives, -0); +0 is already invalid.  One
     # maximum tells whether there is any (a float comparison per pixel is 3-20x slower).
-    bits = d.view(np.uint16 if d.dtype == np.float16 else np.uint32)
-    largest = np.finfo(d.dtype).max.view(bits.dtype)
-    if bits.size and bits.max() > largest:
+    largest = np.finfo(d.dtype).max.view(_bits(d).dtype)
+    if d.size and _bits(d).max() > largest:
         if not d.flags.writeable or (d is depth and not inplace):
             d = d.copy()
-        np.copyto(d, 0.0, where=d.view(bits.dtype) > largest)
+        np.copyto(d, 0.0, where=_bits(d) > largest)
     return d
 
 
 def has_valid_depth(depth: np.ndarray) -> bool:
     """Whether a cleaned depth image (see :func:`clean_depth`) has a valid pixel: one that is not +0."""
-    return bool(depth.view(np.uint16 if depth.dtype == np.float16 else np.uint32).any())
+    return bool(_bits(depth).any())
+
+
+def _bits(depth: np.ndarray) -> np.ndarray:
+    """A float16 / float32 depth image viewed as unsigned integers of its width (no copy)."""
+    return depth.view(np.uint16 if depth.dtype == np.float16 else np.uint32)
 
 
 def read_depth(
