@@ -16,7 +16,7 @@ from shadowcorr.stages import (
     segment_shells, surface_evidence, train_segment_embeddings, voxel_downsample,
 )
 
-from shadowcorr.ops import resolve_threads, segment_chunks, thread_map
+from shadowcorr.ops import resolve_threads, segment_chunks, thread_map, unique_keys
 
 from .paths import REFERENCE_CHECKPOINT as REFERENCE
 from .paths import SAMPLE_DIR as SAMPLE
@@ -193,6 +193,18 @@ def test_outlier_removal_is_the_papers_step_and_fused_leaves_it_out():
     assert np.any(np.all(kept.points == stray, axis=1))
     assert not np.any(np.all(filtered.points == stray, axis=1))
     assert filtered.points.shape[0] < kept.points.shape[0]
+
+
+@pytest.mark.parametrize("high", [1, 7, 300, 40_000, 1 << 40])  # counted in a table up to 4 keys a row, else sorted
+def test_unique_keys_equal_numpys_unique_by_counting_and_by_sorting(high):
+    keys = np.random.default_rng(high).integers(0, high, size=5_000).astype(np.int64)
+    for option in ({}, {"return_counts": True}, {"return_inverse": True}):
+        ours, reference = unique_keys(keys, **option), np.unique(keys, **option)
+        for a, b in zip(*((x,) if isinstance(x, np.ndarray) else x for x in (ours, reference))):
+            np.testing.assert_array_equal(a, b)
+            assert a.dtype == np.int64
+    with pytest.raises(ValueError, match="not both"):
+        unique_keys(keys, return_inverse=True, return_counts=True)
 
 
 def test_shadows_and_outliers_in_small_chunks_equal_one_pass(monkeypatch):

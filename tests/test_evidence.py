@@ -15,6 +15,8 @@ from shadowcorr.stages import (
     merged_mask_segments, sample_segment_points, segment_confidence, split_mask_ids, surface_evidence, without_landings_on,
 )
 
+from shadowcorr.stages._09_grouping import _Groups, _initial_heap
+
 from .scenes import sphere_scene
 from .test_engine import FIELD_CENTRES, FIELD_RADII, same_partition
 
@@ -279,6 +281,26 @@ def test_a_merged_mask_does_not_chain_a_rock_that_lands_mostly_on_it():
     graph = SegmentGraph(view, instance, without_landings_on(surface, view, merged), none, none, np.zeros(0), np.zeros(0))
     labels = agglomerate(graph, config)
     assert labels[0] == labels[1] == labels[4] and labels[2] == labels[3] and labels[0] != labels[2]
+
+
+def test_the_first_linkages_computed_at_once_equal_those_of_the_merge_loop():
+    # Random evidence among 40 segments of 4 views; some pairs share a view and a mask id.
+    rng = np.random.default_rng(3)
+    s = 40
+    view, instance = rng.integers(0, 4, s), rng.integers(1, 6, s)
+    on_mask = rng.integers(0, 300, (s, 4)) * (view[:, None] != np.arange(4))
+    hits = [(a, b, int(rng.integers(1, 200))) for a, b in rng.integers(0, s, (120, 2)) if view[a] != view[b]]
+    hits = list({(a, b): (a, b, h) for a, b, h in hits}.values())  # one row per directed pair
+    volume = [(a, b, float(rng.uniform(-1, 1)), float(rng.uniform(0, 2)))
+              for a, b in {(min(a, b), max(a, b)) for a, b in rng.integers(0, s, (80, 2)) if a != b}]
+    graph = _graph(view.tolist(), instance.tolist(), on_mask, hits, volume)
+    config = ShadowCorrConfig(method="fused")
+    groups = _Groups(graph, config)
+    heap = _initial_heap(graph, groups, config)
+    expected = {(g, h): groups.linkage(g, h) for g in range(s) for h in groups.edges[g] if g < h}
+    assert len(heap) == len(expected) > 100
+    for negated, g, h, _, _ in heap:
+        assert -negated == expected[(g, h)]  # bit for bit: the merge order depends on it
 
 
 def test_volumetric_evidence_alone_joins_and_separates():

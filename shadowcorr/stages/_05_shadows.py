@@ -49,31 +49,33 @@ def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrCo
     pts, seg, v = shells.points, shells.segment, config.voxel_size
     if pts.shape[0] == 0:
         return ShadowVoxels.empty()
-    direction = shells.direction
-    centred = pts - shells.mean[seg]
+    direction, count = shells.direction, shells.count
 
     # In-plane principal axes: any orthonormal pair (e1, e2) orthogonal to the direction,
-    # rotated onto the eigenvectors of the projected 2x2 covariance.
+    # rotated onto the eigenvectors of the projected 2x2 covariance.  Per-segment values reach
+    # the points by ``np.repeat`` over the sorted runs and coordinates go column by column:
+    # several times faster than gathers and einsum on (P, 3) rows.
     ref = np.eye(3)[np.argmin(np.abs(direction), axis=1)]
     e1 = np.cross(direction, ref)
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     e2 = np.cross(direction, e1)
-    p1 = np.einsum("pk,pk->p", centred, e1[seg])
-    p2 = np.einsum("pk,pk->p", centred, e2[seg])
+    centred = [pts[:, i] - np.repeat(shells.mean[:, i], count) for i in range(3)]
+    p1, p2 = (sum(centred[i] * np.repeat(e[:, i], count) for i in range(3)) for e in (e1, e2))
     c11 = np.bincount(seg, weights=p1 * p1, minlength=s)
     c12 = np.bincount(seg, weights=p1 * p2, minlength=s)
     c22 = np.bincount(seg, weights=p2 * p2, minlength=s)
     angle = 0.5 * np.arctan2(2 * c12, c11 - c22)  # rotation onto the principal axes
-    cos_a, sin_a = np.cos(angle)[seg], np.sin(angle)[seg]
+    cos_a, sin_a = np.repeat(np.cos(angle), count), np.repeat(np.sin(angle), count)
     xi = cos_a * p1 + sin_a * p2
     eta = -sin_a * p1 + cos_a * p2
 
     # (u0, v0) is the projection of the mean, i.e. (0, 0) here; w, h the bounding box.
-    w, h = segment_range(xi, seg, s), segment_range(eta, seg, s)
-    rho = np.sqrt((2 * xi / np.maximum(w[seg], 1e-9)) ** 2 + (2 * eta / np.maximum(h[seg], 1e-9)) ** 2)
+    half_w = np.repeat(np.maximum(segment_range(xi, seg, s), 1e-9) / 2, count)
+    half_h = np.repeat(np.maximum(segment_range(eta, seg, s), 1e-9) / 2, count)
+    rho = np.sqrt((xi / half_w) ** 2 + (eta / half_h) ** 2)
     d_surf = config.projection_factor * shells.axis_lengths[:, 1]
     n_max = np.maximum(np.floor(d_surf / v), 1).astype(np.int64)
-    layers = np.where(rho < 1, np.floor(n_max[seg] * (1 - rho)), 0).astype(np.int64)
+    layers = np.where(rho < 1, np.floor(np.repeat(n_max, count) * (1 - rho)), 0).astype(np.int64)
 
     # Surface points (layer 0) plus layers 1..n of each point, voxelised and weighed chunk by
     # chunk (``num_threads`` chunks at once).
@@ -124,16 +126,20 @@ def _voxelise_layers(pts: np.ndarray, seg: np.ndarray, reps: np.ndarray, directi
     lies within ``chebyshev_fraction`` of its centre on every axis.  Axis by axis on flat
     arrays: about twice as fast as on (N, 3) blocks.
     """
-    src = np.repeat(np.arange(pts.shape[0]), reps)
-    level = np.arange(src.size) - np.repeat(np.cumsum(reps) - reps, reps)
-    all_seg = seg[src]
-    inside = np.ones(src.size, dtype=bool)
+    # Points come sorted by segment, so per-point and per-segment values reach the layer points
+    # by ``np.repeat`` (about twice as fast as gathers through a layer -> point index).
+    seg_reps = np.bincount(seg, weights=reps, minlength=direction.shape[0]).astype(np.int64)
+    level = np.arange(int(reps.sum())) - np.repeat(np.cumsum(reps) - reps, reps)
+    inside = np.ones(level.size, dtype=bool)
     cell_axes = []
     for axis in range(3):
-        coord = (pts[:, axis] / v)[src] + level * direction[:, axis][all_seg]
+        coord = np.repeat(pts[:, axis] / v, reps)
+        coord += level * np.repeat(direction[:, axis], seg_reps)
         nearest = np.rint(coord)
-        inside &= np.abs(coord - nearest) <= chebyshev_fraction
+        coord -= nearest
+        inside &= np.abs(coord, out=coord) <= chebyshev_fraction
         cell_axes.append(nearest)
+    all_seg = np.repeat(np.arange(seg_reps.size), seg_reps)
     kept = np.flatnonzero(inside)  # one index for four gathers: cheaper than four boolean selections
     key, unpack = pack_cell_keys(all_seg.take(kept), [c.take(kept).astype(np.int64) for c in cell_axes])
     return unpack(unique_keys(key))

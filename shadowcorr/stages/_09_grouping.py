@@ -228,7 +228,7 @@ class _Groups:
 def agglomerate(graph: SegmentGraph, config: ShadowCorrConfig) -> np.ndarray:
     """Group label of every segment by signed average linkage (see the module docstring)."""
     groups = _Groups(graph, config)
-    heap = [(-groups.linkage(g, h), g, h, 0, 0) for g in range(graph.num_segments) for h in groups.edges[g] if g < h]
+    heap = _initial_heap(graph, groups, config)
     heapq.heapify(heap)
     while heap:
         neg, g, h, vg, vh = heapq.heappop(heap)
@@ -240,6 +240,25 @@ def agglomerate(graph: SegmentGraph, config: ShadowCorrConfig) -> np.ndarray:
         for other in groups.edges[kept]:
             heapq.heappush(heap, (-groups.linkage(kept, other), kept, other, groups.version[kept], groups.version[other]))
     return groups.labels()
+
+
+def _initial_heap(graph: SegmentGraph, groups: _Groups, config: ShadowCorrConfig) -> list[tuple]:
+    """Heap entries of every linked pair of single segments, their linkages computed in one
+    vectorised call: the values :meth:`_Groups.linkage` gives, bit for bit (the same float64
+    operations in the same order), at a fraction of the time of one Python call per pair."""
+    pairs = [(g, h, *e) for g in range(graph.num_segments) for h, e in groups.edges[g].items() if g < h]
+    if not pairs:
+        return []
+    table = np.array(pairs, dtype=np.float64)
+    g, h = table[:, 0].astype(np.int64), table[:, 1].astype(np.int64)
+    trials = graph.surface.on_mask.astype(np.float64)
+    # A single segment has one view and one mask id: two of them share a view or none.
+    same_view = graph.view[g] == graph.view[h]
+    same_id = graph.instance[g] == graph.instance[h]
+    agree, differ = (same_view & same_id).astype(np.float64), (same_view & ~same_id).astype(np.float64)
+    link = linkage(table[:, 2], trials[g, graph.view[h]], table[:, 3], trials[h, graph.view[g]], table[:, 4],
+                   table[:, 5], agree, differ, config)
+    return [(-value, a, b, 0, 0) for value, a, b in zip(link.tolist(), g.tolist(), h.tolist())]
 
 
 def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
