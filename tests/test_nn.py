@@ -200,8 +200,9 @@ def test_knn_equals_brute_force_and_stays_in_scene(grid, monkeypatch):
     assert (got_idx[:, 0].numpy() == np.arange(len(batch))).all()
 
 
+@pytest.mark.parametrize("key_bits", [32, 64])
 @pytest.mark.parametrize("radius_sq", [1, 4, 16])
-def test_knn_on_grid_equals_brute_force(radius_sq, monkeypatch, hash_mode):
+def test_knn_on_grid_equals_brute_force(radius_sq, key_bits, monkeypatch, hash_mode):
     rng = np.random.default_rng(radius_sq)
     coords, batch = random_sparse(rng, 2, 9, 0.25)
     # Far-away isolated voxels and a tiny third scene exercise the brute-force fallback.
@@ -212,9 +213,25 @@ def test_knn_on_grid_equals_brute_force(radius_sq, monkeypatch, hash_mode):
     k = 12
     want_idx, want_valid = brute_knn(coords.astype(np.float64), batch, k)
     monkeypatch.setattr(la_mod, "_KNN_BLOCK", 2000)  # several row blocks
+    if key_bits == 64:  # the keys of scenes beyond about 14 million voxels
+        monkeypatch.setattr(la_mod, "_INT32_KEYS", 0)
     got_idx, got_valid = knn_on_grid(torch.from_numpy(coords), torch.from_numpy(batch), k, radius_sq=radius_sq, return_valid=True)
     np.testing.assert_array_equal(got_idx.numpy(), want_idx)
     np.testing.assert_array_equal(got_valid.numpy(), want_valid)
+
+
+@pytest.mark.parametrize("n_scenes", [1, 3])
+def test_site_major_int32_offset_lookup_is_the_transpose(n_scenes, hash_mode):
+    coords, batch = random_sparse(np.random.default_rng(n_scenes), n_scenes, 8, 0.3)
+    table = VoxelHash(torch.from_numpy(coords), torch.from_numpy(batch), reach=2)
+    offsets = kernel_offsets(5)
+    rows = torch.arange(0, len(batch), 3)
+    want = table.offset_lookup(offsets, rows)  # (K, R) int64
+    got = table.offset_lookup(offsets, rows, site_major=True, dtype=torch.int32)
+    assert got.dtype == torch.int32 and (want >= 0).any() and (want < 0).any()
+    np.testing.assert_array_equal(got.numpy(), want.T.numpy())
+    with pytest.raises(ValueError, match="dtype"):
+        table.offset_lookup(offsets, rows, dtype=torch.int16)
 
 
 def test_voxel_hash_lookup_misses_outside_box_and_other_scenes(hash_mode):

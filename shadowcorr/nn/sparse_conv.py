@@ -183,13 +183,13 @@ class VoxelHash:
     def _encode(self, scene: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
         return self.base[scene] + ((coords - self.lo[scene]) * self.stride[scene]).sum(dim=-1)
 
-    def _find(self, keys: torch.Tensor) -> torch.Tensor:
+    def _find(self, keys: torch.Tensor, dtype: torch.dtype = torch.int64) -> torch.Tensor:
         if self.n == 0:
-            return torch.full_like(keys, -1)
+            return torch.full_like(keys, -1, dtype=dtype)
         if self.dense is not None:
-            return take(self.dense, keys).long()
+            return take(self.dense, keys).to(dtype)
         pos = torch.searchsorted(self.sorted_keys, keys).clamp_(max=self.n - 1)
-        return torch.where(take(self.sorted_keys, pos) == keys, take(self.perm, pos), -1)
+        return torch.where(take(self.sorted_keys, pos) == keys, take(self.perm, pos), -1).to(dtype)
 
     def lookup(self, coords: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
         """Row of the site at ``(batch, coords)`` or -1, for arbitrary queries.
@@ -212,18 +212,24 @@ class VoxelHash:
         keys = self._encode(scene, torch.minimum(torch.maximum(coords, lo), hi))
         return torch.where(inside, self._find(keys), -1)
 
-    def offset_lookup(self, offsets: torch.Tensor, rows: slice | torch.Tensor | None = None) -> torch.Tensor:
+    def offset_lookup(self, offsets: torch.Tensor, rows: slice | torch.Tensor | None = None, *,
+                      site_major: bool = False, dtype: torch.dtype = torch.int64) -> torch.Tensor:
         """Rows of the sites at ``coords[r] + offsets[o]`` (same scene), or -1.
 
         Args:
             offsets: (K, 3) int64 with every component in ``[-reach, reach]``.
             rows: which sites to query (default: all).
+            site_major: return (R, K) instead of (K, R).
+            dtype: ``torch.int64``, or ``torch.int32`` (half the memory traffic for consumers
+                that stay in 32 bits, such as the grid k-NN's sort keys).
 
         Returns:
-            (K, R) int64, offset-major.
+            (K, R) offset-major, or (R, K) with ``site_major``.
         """
         if offsets.numel() and int(offsets.abs().max()) > self.reach:
             raise ValueError(f"offsets reach {int(offsets.abs().max())} > the table's reach {self.reach}")
+        if dtype not in (torch.int64, torch.int32):
+            raise ValueError(f"dtype must be torch.int64 or torch.int32, got {dtype}")
         offsets = offsets.to(device=self.keys.device, dtype=torch.int64)
         sel = slice(None) if rows is None else rows
         base = self.keys[sel]  # (R,)
@@ -232,8 +238,11 @@ class VoxelHash:
         else:
             stride = self.stride[self.scene_of_row[sel]]  # (R, 3)
         # Written out instead of ``offsets @ stride.T``: integer matmul has no CUDA kernel.
+        if site_major:  # built (R, K) rather than transposed, so the gather reads contiguous keys
+            delta = stride[:, 0:1] * offsets[:, 0] + stride[:, 1:2] * offsets[:, 1] + stride[:, 2:3] * offsets[:, 2]
+            return self._find(base.unsqueeze(1) + delta, dtype)
         delta = offsets[:, 0:1] * stride[:, 0] + offsets[:, 1:2] * stride[:, 1] + offsets[:, 2:3] * stride[:, 2]
-        return self._find(delta + base)  # (K, R)
+        return self._find(delta + base, dtype)  # (K, R)
 
 
 def neighbour_index(coords: torch.Tensor, batch: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:

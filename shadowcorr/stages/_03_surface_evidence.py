@@ -145,7 +145,7 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
     # Bounding sphere of each segment's sample, for the frustum test.
     safe = np.maximum(samples, 1)
     centre = np.stack([np.bincount(seg, weights=c, minlength=s) / safe for c in xyz], axis=1)
-    radius = segment_max(np.sqrt(sum((c - centre[seg, i]) ** 2 for i, c in enumerate(xyz))), seg, s)
+    radius = segment_max(np.sqrt(sum((c - np.repeat(centre[:, i], samples)) ** 2 for i, c in enumerate(xyz))), seg, s)
 
     def land(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """Visible and on-mask counts of every segment in view j, and the (a, b) landing pairs."""
@@ -165,12 +165,14 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         # World -> camera: cam_i = sum_j (p_j - t_j) R_ji, column by column.
         rel = [c[rows] - translation[i] for i, c in enumerate(xyz)]
         x, y, z = (rel[0] * rotation[0, i] + rel[1] * rotation[1, i] + rel[2] * rotation[2, i] for i in range(3))
-        front = np.flatnonzero(z > 1e-9)
-        rows, x, y, z = rows[front], x[front], y[front], z[front]
-        col = np.rint(k.fx * x / z + k.cx).astype(np.int64)
-        row = np.rint(k.fy * y / z + k.cy).astype(np.int64)
-        inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-        rows, z, row, col = rows[inside], z[inside], row[inside], col[inside]
+        # Pixel of every point (meaningless behind the camera, where z <= 0), then one selection of
+        # the points in front of the camera and inside the frame.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            col_f = np.rint(k.fx * x / z + k.cx)
+            row_f = np.rint(k.fy * y / z + k.cy)
+        inside = np.flatnonzero((z > 1e-9) & (col_f >= 0) & (col_f < width) & (row_f >= 0) & (row_f < height))
+        rows, z = rows[inside], z[inside]
+        col, row = col_f[inside].astype(np.int64), row_f[inside].astype(np.int64)
         depth = view.depth.ravel()[row * width + col].astype(np.float64) * scale  # flat: 2x a 2-D gather
         tolerance = np.maximum(config.projection_depth_tolerance, config.projection_depth_tolerance_rel * z)
         agree = np.flatnonzero(np.isfinite(depth) & (depth > 0) & (np.abs(depth - z) <= tolerance))
