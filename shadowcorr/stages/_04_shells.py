@@ -47,12 +47,13 @@ def voxel_downsample(points: np.ndarray, segment: np.ndarray, cell: float) -> tu
     """
     if points.shape[0] == 0:
         return points.reshape(0, 3), segment[:0]
-    key, unpack = pack_cell_keys(segment, [np.floor(points[:, i] / cell).astype(np.int64) for i in range(3)])
+    key, _ = pack_cell_keys(segment, [np.floor(points[:, i] / cell).astype(np.int64) for i in range(3)])
     cells, member_cell = unique_keys(key, return_inverse=True)
     count = np.bincount(member_cell, minlength=cells.size)[:, None]
     # Column by column: bincount on a strided column beats a gather of the (N, 3) rows.
     sums = np.stack([np.bincount(member_cell, weights=points[:, i], minlength=cells.size) for i in range(3)], axis=1)
-    cell_segment, _ = unpack(cells)
+    cell_segment = np.empty(cells.size, dtype=np.int64)
+    cell_segment[member_cell] = segment  # a cell holds one segment's points
     return sums / count, cell_segment
 
 
@@ -108,7 +109,7 @@ def segment_shells(segments: Segments, config: ShadowCorrConfig) -> SegmentShell
     count = np.bincount(seg, minlength=s)
     safe = np.maximum(count, 1)[:, None]
     mean = np.stack([np.bincount(seg, weights=pts[:, i], minlength=s) for i in range(3)], axis=1) / safe
-    centred = [pts[:, i] - mean[seg, i] for i in range(3)]
+    centred = [pts[:, i] - np.repeat(mean[:, i], count) for i in range(3)]
     # The six distinct products, each summed per segment on contiguous columns.
     cov = np.empty((s, 3, 3))
     for i in range(3):
