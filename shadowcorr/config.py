@@ -88,6 +88,11 @@ class ShadowCorrConfig(BaseModel):
     beta_alpha: float = Field(1.41, gt=1)
     beta_beta: float = Field(1.94, gt=1)
     distance_margin: float = Field(1.01, ge=1)
+    surface_distance_cell: float | None = Field(
+        None, ge=0, description="the confidence's distance runs to the segment's shell points averaged per cell of this "
+        "size (units; 0: the shell points themselves, the paper); None: half a voxel for 'fused' (measured on the "
+        "quality benchmark: average purity unchanged in 46 of 47 rows, one 0.03 points higher, a k-d tree of a third "
+        "of the points), 0 for the paper's methods")
     min_confidence: float = Field(0.05, ge=0, lt=1)
 
     # step 7: consensus filter
@@ -185,6 +190,13 @@ class ShadowCorrConfig(BaseModel):
         if self.projection_pixel_tolerance is not None:
             return self.projection_pixel_tolerance
         return 6 if self.method == "fused" else 0
+
+    @property
+    def distance_cell(self) -> float:
+        """``surface_distance_cell`` with the method's default filled in (0: no averaging)."""
+        if self.surface_distance_cell is not None:
+            return self.surface_distance_cell
+        return self.voxel_size / 2 if self.method == "fused" else 0.0
 
     @property
     def outlier_removal(self) -> bool:

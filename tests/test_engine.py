@@ -428,3 +428,28 @@ def test_segments_without_valid_depth_still_get_labels(model):
         v.depth[:] = 0
     with pytest.raises(DepthRangeError, match="units.*max_depth"):
         correspond(bundle, model)
+
+
+def test_confidence_is_the_beta_profile_of_the_distance_to_the_averaged_shell():
+    from shadowcorr.stages._05_shadows import _confidence
+
+    assert [ShadowCorrConfig(method=m).distance_cell for m in ("shadowcorr", "meanshift", "fused")] == [0.0, 0.0, 4.0]
+    assert ShadowCorrConfig(method="fused", surface_distance_cell=0).distance_cell == 0.0
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 40, (300, 3))
+    seg = np.repeat([0, 1], 150)
+    pts[150:] += 500.0  # segment 1 far from segment 0: distances stay within a segment
+    vox_seg = np.repeat([0, 1], 20)
+    vox_cell = np.floor(np.concatenate([rng.uniform(-2, 7, (20, 3)), rng.uniform(60, 70, (20, 3))])).astype(np.int64)
+    got = {}
+    for cell in (0.0, 4.0):
+        config = ShadowCorrConfig(surface_distance_cell=cell)
+        surface, surface_seg = voxel_downsample(pts, seg, cell) if cell else (pts, seg)
+        assert surface.shape[0] < pts.shape[0] or not cell
+        centres = vox_cell * config.voxel_size
+        dist = np.array([np.linalg.norm(surface[surface_seg == s] - c, axis=1).min() for s, c in zip(vox_seg, centres)])
+        farthest = np.array([dist[vox_seg == s].max() for s in vox_seg])
+        want = beta_profile(dist / (config.distance_margin * farthest), config.beta_alpha, config.beta_beta)
+        got[cell] = _confidence(pts, seg, vox_seg, vox_cell, config.voxel_size, 1e4, 2, config)
+        np.testing.assert_allclose(got[cell], want, rtol=1e-12)
+    assert not np.allclose(got[0.0], got[4.0])  # the averaging moved the distances

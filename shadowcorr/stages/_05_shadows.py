@@ -6,7 +6,9 @@ layers along the viewing direction, deeper near the middle of the silhouette and
 not at all at its rim (silhouette-aware erosion), for a depth proportional to the
 segment's second error-ellipsoid axis.  The surface and layer points are voxelised,
 and each voxel gets a confidence that rises from the surface, peaks at about 30% of
-the shadow's depth and falls off towards its far end (a Beta(1.41, 1.94) profile).
+the shadow's depth and falls off towards its far end (a Beta(1.41, 1.94) profile of the
+distance to the segment's surface points; ``fused`` measures it to those points averaged per
+half voxel, see ``ShadowCorrConfig.surface_distance_cell``).
 Segments of one object - even ones that share no visible surface - end up
 overlapping inside the object; that overlap is the signal the rest of the pipeline
 reads.
@@ -27,7 +29,7 @@ from ..config import ShadowCorrConfig
 from ..ops import (pack_cell_keys, resolve_threads, segment_chunks, segment_max, segment_range, separated,
                    separation_gap, thread_map, unique_keys)
 from ._02_segments import Segments
-from ._04_shells import SegmentShells
+from ._04_shells import SegmentShells, voxel_downsample
 
 
 @dataclass
@@ -101,8 +103,12 @@ def cast_shadows(segments: Segments, shells: SegmentShells, config: ShadowCorrCo
 def _confidence(pts: np.ndarray, seg: np.ndarray, vox_seg: np.ndarray, vox_cell: np.ndarray, v: float, gap: float,
                 num_segments: int, config: ShadowCorrConfig) -> np.ndarray:
     """Step 6: the Beta profile of each voxel centre's distance to its segment's nearest surface
-    point, relative to the segment's farthest voxel."""
+    point, relative to the segment's farthest voxel.  With ``config.distance_cell`` > 0 the surface
+    points are first averaged per cell of that size: the tree holds a few times fewer points (a
+    third on the sample scene at half a voxel) and a distance changes by at most the cell's diagonal."""
     centres = vox_cell * v
+    if config.distance_cell > 0:
+        pts, seg = voxel_downsample(pts, seg, config.distance_cell)
     # Leaves of 32: queries from deep inside a shadow visit many leaves (21 vs 24 ms at 16).
     dist, _ = KDTree(separated(pts, seg, gap), leafsize=32).query(separated(centres, vox_seg, gap), k=1)
     max_d = segment_max(dist, vox_seg, num_segments)
