@@ -217,8 +217,7 @@ def back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: 
     return np.stack([r[i, 0] * x + r[i, 1] * y + r[i, 2] * depth + t[i] for i in range(3)], axis=1)
 
 
-def _pixel_stride(view: View, blob_image: np.ndarray, max_depth: float, scale: float,
-                  config: ShadowCorrConfig) -> int:
+def _pixel_stride(view: View, blobs: Blobs, max_depth: float, scale: float, config: ShadowCorrConfig) -> int:
     """Every how many pixels (per axis) a point is back-projected: as many as fit, at the median
     depth of the view's segments (read on every 4th pixel per axis), into ``pixel_spacing``
     of a ``downsample_size`` cell.  Facing the camera, every cell that step 1 averages over
@@ -230,7 +229,12 @@ def _pixel_stride(view: View, blob_image: np.ndarray, max_depth: float, scale: f
     points fill many cells."""
     if not config.subsample_pixels:
         return 1
-    d = np.asarray(view.depth[::4, ::4][blob_image[::4, ::4] >= 0], dtype=np.float32)  # float16: compare in float32
+    # The frame's every 4th row and column, read inside the blobs' bounds only (the first multiple
+    # of 4 at or after their start): the same pixels.
+    r0, r1, c0, c1 = blobs.bounds
+    r0, c0 = -(-r0 // 4) * 4, -(-c0 // 4) * 4
+    on_blob = blobs.labels[r0:r1:4, c0:c1:4] >= 0
+    d = np.asarray(view.depth[r0:r1:4, c0:c1:4][on_blob], dtype=np.float32)  # float16: compare in float32
     d = d[np.isfinite(d) & (d > 0) & (d <= max_depth)]
     if d.size == 0:
         return 1
@@ -311,7 +315,7 @@ def _view_segments(view: View, scale: float, config: ShadowCorrConfig) -> _ViewS
         return _ViewSegments(image, np.zeros((0, 3)), *(np.zeros(0, dtype=np.int64) for _ in range(4)))
     # Back-project the pixels of a stride x stride grid, blob after blob, in raster order.
     max_depth_bundle = config.max_depth / scale
-    stride = _pixel_stride(view, blobs.labels, max_depth_bundle, scale, config)
+    stride = _pixel_stride(view, blobs, max_depth_bundle, scale, config)
     # Only the blobs' bounding box is scanned, on the grid of every stride-th row and column.
     r0, r1, c0, c1 = blobs.bounds
     r0, c0 = -(-r0 // stride) * stride, -(-c0 // stride) * stride
