@@ -184,33 +184,31 @@ class ShadowCorrConfig(BaseModel):
             raise ValueError("downsample_size must be smaller than voxel_size")
         return self
 
+    def _by_method(self, value, fused, paper):
+        """``value`` if it was set, else the default of the method: ``fused``'s or the paper's methods'."""
+        if value is not None:
+            return value
+        return fused if self.method == "fused" else paper
+
     @property
     def pixel_tolerance(self) -> int:
         """``projection_pixel_tolerance`` with the method's default filled in."""
-        if self.projection_pixel_tolerance is not None:
-            return self.projection_pixel_tolerance
-        return 6 if self.method == "fused" else 0
+        return self._by_method(self.projection_pixel_tolerance, 6, 0)
 
     @property
     def distance_cell(self) -> float:
         """``surface_distance_cell`` with the method's default filled in (0: no averaging)."""
-        if self.surface_distance_cell is not None:
-            return self.surface_distance_cell
-        return self.voxel_size / 2 if self.method == "fused" else 0.0
+        return self._by_method(self.surface_distance_cell, self.voxel_size / 2, 0.0)
 
     @property
     def outlier_removal(self) -> bool:
         """``remove_outliers`` with the method's default filled in."""
-        if self.remove_outliers is not None:
-            return self.remove_outliers
-        return self.method != "fused"
+        return self._by_method(self.remove_outliers, False, True)
 
     @property
     def embedding_steps(self) -> int:
         """``segment_embedding_steps`` with the method's default filled in."""
-        if self.segment_embedding_steps is not None:
-            return self.segment_embedding_steps
-        return 25 if self.method == "fused" else 200
+        return self._by_method(self.segment_embedding_steps, 25, 200)
 
     @property
     def embedding_lr(self) -> float:

@@ -217,6 +217,16 @@ def back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: 
     return np.stack([r[i, 0] * x + r[i, 1] * y + r[i, 2] * depth + t[i] for i in range(3)], axis=1)
 
 
+def _frame_grid(blobs: Blobs, depth: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Blob indices and float32 depth on the frame's grid of every ``step``-th row and column, read
+    inside the blobs' bounds only (the same blob pixels as on the whole frame), and the frame row
+    and column of the grid's first pixel.  Float16 depth is widened here, on the grid's pixels only."""
+    r0, r1, c0, c1 = blobs.bounds
+    r0, c0 = -(-r0 // step) * step, -(-c0 // step) * step  # the first grid row and column inside the bounds
+    window = np.asarray(depth[r0:r1:step, c0:c1:step], dtype=np.float32)
+    return blobs.labels[r0:r1:step, c0:c1:step], window, r0, c0
+
+
 def _pixel_stride(view: View, blobs: Blobs, max_depth: float, scale: float, config: ShadowCorrConfig) -> int:
     """Every how many pixels (per axis) a point is back-projected: as many as fit, at the median
     depth of the view's segments (read on every 4th pixel per axis), into ``pixel_spacing``
@@ -229,12 +239,8 @@ def _pixel_stride(view: View, blobs: Blobs, max_depth: float, scale: float, conf
     points fill many cells."""
     if not config.subsample_pixels:
         return 1
-    # The frame's every 4th row and column, read inside the blobs' bounds only (the first multiple
-    # of 4 at or after their start): the same pixels.
-    r0, r1, c0, c1 = blobs.bounds
-    r0, c0 = -(-r0 // 4) * 4, -(-c0 // 4) * 4
-    on_blob = blobs.labels[r0:r1:4, c0:c1:4] >= 0
-    d = np.asarray(view.depth[r0:r1:4, c0:c1:4][on_blob], dtype=np.float32)  # float16: compare in float32
+    labels, depth, _, _ = _frame_grid(blobs, view.depth, 4)
+    d = depth[labels >= 0]
     d = d[np.isfinite(d) & (d > 0) & (d <= max_depth)]
     if d.size == 0:
         return 1
@@ -316,20 +322,17 @@ def _view_segments(view: View, scale: float, config: ShadowCorrConfig) -> _ViewS
     # Back-project the pixels of a stride x stride grid, blob after blob, in raster order.
     max_depth_bundle = config.max_depth / scale
     stride = _pixel_stride(view, blobs, max_depth_bundle, scale, config)
-    # Only the blobs' bounding box is scanned, on the grid of every stride-th row and column.
-    r0, r1, c0, c1 = blobs.bounds
-    r0, c0 = -(-r0 // stride) * stride, -(-c0 // stride) * stride
-    on_grid = blobs.labels[r0:r1:stride, c0:c1:stride]
-    depth = np.asarray(view.depth[r0:r1:stride, c0:c1:stride], dtype=np.float32)  # float16: compare in float32
+    on_grid, depth, r0, c0 = _frame_grid(blobs, view.depth, stride)
     chosen = (on_grid >= 0) & np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle)
     on_grid_pixel = np.flatnonzero(chosen)
     # Grouped by blob, raster order within a blob: a stable sort, radix on int16 indices.
     blob_of_pixel = on_grid.ravel()[on_grid_pixel]
     by_blob = np.argsort(blob_of_pixel, kind="stable")
     blob_of_pixel = blob_of_pixel[by_blob]
-    rows, cols = np.divmod(on_grid_pixel[by_blob], chosen.shape[1])
+    on_grid_pixel = on_grid_pixel[by_blob]
+    rows, cols = np.divmod(on_grid_pixel, chosen.shape[1])
     rows, cols = rows * stride + r0, cols * stride + c0
-    d = view.depth[rows, cols]
+    d = depth.ravel()[on_grid_pixel]  # the grid's depth (widened exactly from float16), not a second frame read
     pts = back_project(view, rows.astype(np.float64), cols.astype(np.float64), d.astype(np.float64))
     return _ViewSegments(image, pts * scale if scale != 1.0 else pts,
                          np.bincount(blob_of_pixel, minlength=blobs.lengths.size), blobs.instance, blobs.component,
