@@ -58,7 +58,8 @@ def tile_scene(bases: list, spacing: float):
         for v in base.views:
             pose = v.pose.copy()
             pose[:3, 3] += offset
-            mask = np.where(v.mask > 0, v.mask + c * id_stride, 0).astype(np.int32)
+            # Widened first: masks come as stored (uint8 / uint16), and shifted ids outgrow them.
+            mask = np.where(v.mask > 0, v.mask.astype(np.int32) + c * id_stride, 0)
             views.append(View(name=f"tile{c}_{v.name}", pose=pose, intrinsics=v.intrinsics,
                               depth=v.depth.copy() if repeated else v.depth, mask=mask))
     return SceneBundle(units=bases[0].units, views=views, name=f"field_x{len(bases)}",

@@ -33,7 +33,7 @@ def two_clusters():
     far = sphere_scene([[3940, 0, 0], [4060, 0, 0]], [50, 45], cameras=4)
     for i, v in enumerate(far.views):  # distinct view names and object ids
         v.name = f"far{i}"
-        v.mask = np.where(v.mask > 0, v.mask + 10, 0).astype(np.int32)
+        v.mask = np.where(v.mask > 0, v.mask.astype(np.int32) + 10, 0)
     near.views += far.views
     return near
 
