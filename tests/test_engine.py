@@ -133,6 +133,27 @@ def test_blobs_of_speckled_masks_match_labelling_each_instance(seed):
     assert len(set(find_blobs(mask, True, 1).labels[:4, :4][mask[:4, :4] == 7].tolist())) == 1
 
 
+def test_blobs_of_a_checkerboard_mask_take_memory_linear_in_runs():
+    """A checkerboard of one id is all one-pixel runs joined through their corners: one blob.
+    Comparing each run with every run of the row above would pair 300 x 300 runs per row
+    (about 1 GB of pair indices here); touching runs are a contiguous stretch, so the pairs
+    stay about two per run."""
+    import tracemalloc
+
+    h, w = 300, 600
+    mask = ((np.arange(h)[:, None] + np.arange(w)[None, :]) % 2).astype(np.uint8) * 5
+    tracemalloc.start()
+    try:
+        blobs = find_blobs(mask, True, 1)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert blobs.lengths.tolist() == [h * w // 2] and blobs.instance.tolist() == [5]
+    np.testing.assert_array_equal(blobs.labels == 0, mask > 0)
+    runs = h * w // 2
+    assert peak < 400 * runs, f"{peak / 1e6:.0f} MB for {runs} runs"
+
+
 def test_segment_image_shifted_moves_indices_to_the_scene_numbering_and_widens_when_needed():
     mask = np.zeros((6, 8), np.int32)
     mask[1:3, 1:3], mask[4:6, 5:8] = 3, 4

@@ -160,18 +160,24 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
     # Instances in ascending value, and each run's instance.
     ids, instance_of_run = np.unique(value, return_inverse=True)
     if split_components:
-        # Runs sorted by (instance, row, start column); a run's candidates are the runs of
-        # its instance one row up, found by one search per run.
+        # Runs sorted by (instance, row, start column).  Within one row of one instance the
+        # runs are disjoint, so their start and end columns are both ascending: the runs
+        # one row up that touch run b (start <= end_b and end >= col_b) form one contiguous
+        # stretch of that order, found by two searches.  The pairs are therefore at most
+        # the runs of both rows (linear in runs), even for a mask that is all tiny runs
+        # such as a checkerboard, where "every run of the row above" would be quadratic.
         order = np.lexsort((col, row, instance_of_run))
-        key = instance_of_run[order] * (crop.shape[0] + 1) + row[order]
-        above = instance_of_run * (crop.shape[0] + 1) + row - 1  # key of the row above, same instance
-        lo = np.searchsorted(key, above, side="left")
-        hi = np.searchsorted(key, above, side="right")
-        count = hi - lo
+        line = instance_of_run * (crop.shape[0] + 1) + row  # (instance, row) as one key
+        stride = width + 2  # column keys 0..width inclusive stay inside one line
+        line_sorted = line[order] * stride
+        start_key, end_key = line_sorted + col[order], line_sorted + end[order]
+        above = (line - 1) * stride  # same instance, one row up
+        lo = np.searchsorted(end_key, above + col, side="left")  # first run up there ending at or after col_b
+        hi = np.searchsorted(start_key, above + end, side="right")  # past the last one starting at or before end_b
+        count = np.maximum(hi - lo, 0)
         run_b = np.repeat(np.arange(start.size), count)
         run_a = order[np.repeat(lo, count) + (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count))]
-        touch = (col[run_b] <= end[run_a]) & (col[run_a] <= end[run_b])
-        graph = coo_matrix((np.ones(int(touch.sum())), (run_a[touch], run_b[touch])), shape=(start.size,) * 2)
+        graph = coo_matrix((np.ones(run_a.size), (run_a, run_b)), shape=(start.size,) * 2)
         _, blob_of_run = connected_components(graph, directed=False)
     else:
         blob_of_run = instance_of_run
