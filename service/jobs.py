@@ -60,8 +60,13 @@ class Prepared:
 
 
 # --------------------------------------------------------------------------- process setup
-def init_worker(torch_threads: int, parent_pid: int, warm_up: bool = True) -> None:
-    """Initializer of every worker process: threads, signals, orphan guard, warm-up.
+def init_worker(torch_threads: int, parent_pid: int, warm_up: bool = True, memory_bytes: int = 0) -> None:
+    """Initializer of every worker process: memory cap, threads, signals, orphan guard, warm-up.
+
+    * ``memory_bytes`` (> 0) caps the process's address space (``RLIMIT_AS``): the input
+      limits bound what a request may cost up front, and a case they miss then fails an
+      allocation (MemoryError: 413 ``too_large``, or a crashed and replaced worker) in
+      this process instead of driving the machine into its OOM killer.
 
     * torch and BLAS get ``torch_threads`` threads: the pool already runs one scene per
       core, so more threads per worker only oversubscribe the CPU.
@@ -75,6 +80,13 @@ def init_worker(torch_threads: int, parent_pid: int, warm_up: bool = True) -> No
     """
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s worker[%(process)d] %(levelname)s %(message)s")
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if memory_bytes > 0:
+        import resource
+
+        try:
+            resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, memory_bytes))
+        except (ValueError, OSError) as e:  # some platforms (macOS) refuse an address-space limit
+            log.warning("worker_memory_bytes not applied: %s", e)
     import torch
 
     torch.set_num_threads(torch_threads)
@@ -125,6 +137,11 @@ def _load(upload: Upload, content_type: str, limits: RequestLimits):
         raise JobError(422, "invalid_bundle", str(e), e.to_dicts()) from None
 
 
+#: Error code of a :class:`SceneLimitError`, by the limit it names.
+_LIMIT_CODES = {"max_segments": "too_many_segments", "max_voxels": "too_many_voxels", "max_stage_seconds": "stage_too_slow",
+                "max_scene_pixels": "too_many_pixels", "max_scene_points": "too_many_points"}
+
+
 def _guarded(what: str, fn, *args):
     """Run ``fn``: input errors pass through, the rest is logged and becomes a clean JobError.
 
@@ -135,9 +152,8 @@ def _guarded(what: str, fn, *args):
         return fn(*args)
     except JobError:
         raise
-    except SceneLimitError as e:  # too many segments or voxels, or a stage too slow: refused before the next stage
-        code = {"max_segments": "too_many_segments", "max_voxels": "too_many_voxels",
-                "max_stage_seconds": "stage_too_slow"}.get(e.limit, "scene_too_large")
+    except SceneLimitError as e:  # a scene over a size limit, or a stage too slow: refused before the next stage
+        code = _LIMIT_CODES.get(e.limit, "scene_too_large")
         raise JobError(413, code, str(e), [{"loc": "scene", "msg": str(e)}]) from None
     except DepthRangeError as e:  # nearly every segment lost its depth: wrong units or max_depth
         raise JobError(422, "no_valid_depth", str(e), [{"loc": "manifest.units", "msg": str(e)}]) from None

@@ -45,6 +45,7 @@ class RequestLimits:
     bundle: BundleLimits
     max_segments: int
     max_scene_points: int
+    max_mask_runs: int
 
     @classmethod
     def from_settings(cls, s: ServiceSettings) -> "RequestLimits":
@@ -55,9 +56,12 @@ class RequestLimits:
                 max_total_bytes=s.max_uncompressed_bytes,
                 max_files=s.max_files,
                 max_segments=s.max_segments,
+                max_scene_pixels=s.max_scene_pixels,
+                max_scene_points=s.max_scene_points,
             ),
             max_segments=s.max_segments,
             max_scene_points=s.max_scene_points,
+            max_mask_runs=s.max_mask_runs,
         )
 
 
@@ -271,13 +275,16 @@ def check_instances(bundle: SceneBundle, limits: RequestLimits, min_blob_pixels:
       bound stops absurd masks (every pixel its own id) before the real work.
     * 413 ``too_many_points`` when more than ``max_scene_points`` instance pixels have a
       valid depth (each becomes a 3D point).
+    * 413 ``too_many_runs`` when the masks hold more than ``max_mask_runs`` runs (stretches
+      of one instance id along a row): the blob finder's memory grows with them, and a
+      speckled mask of a few kilobytes of PNG holds millions.
     * 422 when no view has an instance pixel with valid depth: there is nothing to match.
 
     Point-segment bundles are limited by the loader (``BundleLimits.max_segments``).
     """
     if bundle.point_segments is not None:
         return
-    total = points = 0
+    total = points = runs = 0
     any_foreground = False
     threshold = max(min_blob_pixels, 1)
     for view in bundle.views:
@@ -288,6 +295,11 @@ def check_instances(bundle: SceneBundle, limits: RequestLimits, min_blob_pixels:
         fg = mask[on]  # foreground only: usually a small share of the pixels, so counting is cheap
         if fg.size == 0:
             continue
+        # A run starts at a foreground pixel whose left neighbour differs, or at a row's start.
+        runs += int(np.count_nonzero(on[:, 0])) + int(np.count_nonzero(on[:, 1:] & (mask[:, 1:] != mask[:, :-1])))
+        if runs > limits.max_mask_runs:
+            raise _over_limit("too_many_runs", f"{runs} runs of instance pixels", "max_mask_runs",
+                              limits.max_mask_runs, view.name)
         any_foreground = True
         if int(fg.max()) < _BINCOUNT_MAX_ID:
             counts = np.bincount(fg)

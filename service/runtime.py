@@ -72,6 +72,7 @@ class Runtime:
         self.pool = WorkerPool(
             settings.workers,
             torch_threads=settings.torch_threads,
+            memory_bytes=settings.worker_memory_bytes,
             metrics=self.metrics,
             startup_timeout_s=settings.startup_timeout_s,
             kill_grace_s=settings.cancel_grace_s,
@@ -242,12 +243,17 @@ class Runtime:
         assert self.shutdown_deadline is not None
         await asyncio.sleep(max(0.0, self.shutdown_deadline - time.monotonic()))
 
+    def check_not_shutting_down(self) -> None:
+        """503 ``shutting_down`` (with Retry-After) once SIGTERM has arrived: for every request read from then on."""
+        if self.shutdown_deadline is not None:
+            raise ApiError(503, "shutting_down", "the service is shutting down; retry later",
+                           headers={"Retry-After": str(self.settings.retry_after_s)})
+
     def check_accepting(self) -> None:
         """503 (with Retry-After) while warming up or shutting down: before reading a byte of the body."""
-        headers = {"Retry-After": str(self.settings.retry_after_s)}
-        if self.shutdown_deadline is not None:
-            raise ApiError(503, "shutting_down", "the service is shutting down; retry later", headers=headers)
+        self.check_not_shutting_down()
         if not self.ready:
+            headers = {"Retry-After": str(self.settings.retry_after_s)}
             why = self.startup_error or "the model is loading and the workers are warming up"
             raise ApiError(503, "not_ready", f"the service is not ready: {why}", headers=headers)
 

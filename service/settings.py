@@ -80,7 +80,22 @@ class ServiceSettings(BaseSettings):
     # cheap upload from holding a worker for long.
     max_segments: int = Field(500, ge=1, description="segments per scene (counted from the masks before prepare)")
     max_scene_points: int = Field(
-        8_000_000, ge=1, description="instance pixels with valid depth in all views (the points prepare back-projects)"
+        8_000_000, ge=1, description="instance pixels with valid depth in all views (the points prepare back-projects), "
+        "or the points of a point-segment bundle (checked before its array is decompressed)"
+    )
+    # What one request may cost in memory is bounded up front by what the bundle declares:
+    # decoded pixels (a few bytes of PNG can declare 4096 x 4096), mask runs (the blob
+    # finder's work and memory grow with them, about 300 bytes a run) and points.
+    max_scene_pixels: int = Field(
+        64 * MiB, ge=1, description="width x height summed over all views, checked before any image is decoded"
+    )
+    max_mask_runs: int = Field(
+        500_000, ge=1, description="runs of one instance id along the mask rows, summed over all views "
+        "(a real mask has a few thousand; a speckled one millions)"
+    )
+    worker_memory_bytes: int = Field(
+        6 * 1024 * MiB, ge=0, description="address-space limit (RLIMIT_AS) of each worker process, a last line of "
+        "defence under the input limits; 0 = none"
     )
 
     # --- security and logging

@@ -112,6 +112,7 @@ class WorkerPool:
         size: int,
         *,
         torch_threads: int = 1,
+        memory_bytes: int = 0,
         metrics: ServiceMetrics | None = None,
         startup_timeout_s: float = 600.0,
         kill_grace_s: float = 60.0,
@@ -120,6 +121,7 @@ class WorkerPool:
         self.size = size
         self.kill_grace_s = kill_grace_s
         self.torch_threads = torch_threads
+        self.memory_bytes = memory_bytes
         self.metrics = metrics
         self.startup_timeout_s = startup_timeout_s
         self.warm_up = warm_up
@@ -301,7 +303,7 @@ class WorkerPool:
                 max_workers=1,
                 mp_context=self._ctx,
                 initializer=jobs.init_worker,
-                initargs=(self.torch_threads, os.getpid(), self.warm_up),
+                initargs=(self.torch_threads, os.getpid(), self.warm_up, self.memory_bytes),
             )
             try:
                 pid = await asyncio.wait_for(asyncio.wrap_future(executor.submit(jobs.hello)), self.startup_timeout_s)

@@ -37,6 +37,15 @@ Units = Literal["m", "cm", "mm"]
 UNIT_IN_METRES: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 
 
+#: Largest pose translation, in metres, a manifest may declare (1,000 km).  Coordinates
+#: beyond it are either a mistake or lose their centimetres in float32 arithmetic
+#: downstream, and far beyond it products and squares overflow.
+MAX_TRANSLATION_M = 1e6
+#: Largest focal length and principal-point coordinate, in pixels: a 4096-pixel image
+#: with a 1e6-pixel focal length sees 0.2 degrees; larger values are not a camera.
+MAX_INTRINSICS_PX = 1e6
+
+
 def unit_scale(from_units: str, to_units: str) -> float:
     """Factor that converts a length in ``from_units`` to ``to_units``."""
     return UNIT_IN_METRES[from_units] / UNIT_IN_METRES[to_units]
@@ -53,7 +62,8 @@ class DepthSpec(_Strict):
     file: str
     format: Literal["exr", "png", "npy"]
     scale: float = Field(
-        1.0, gt=0, description="units per stored value; applied to every format, usually != 1 only for 16-bit PNG"
+        1.0, ge=1e-9, le=1e9,
+        description="units per stored value; applied to every format, usually != 1 only for 16-bit PNG",
     )
     kind: Literal["z", "range"] = "z"
     channel: str | None = Field(
@@ -88,10 +98,10 @@ class MaskSpec(_Strict):
 
 
 class Intrinsics(_Strict):
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
-    cx: float
-    cy: float
+    fx: float = Field(gt=0, le=MAX_INTRINSICS_PX)
+    fy: float = Field(gt=0, le=MAX_INTRINSICS_PX)
+    cx: float = Field(ge=-MAX_INTRINSICS_PX, le=MAX_INTRINSICS_PX)
+    cy: float = Field(ge=-MAX_INTRINSICS_PX, le=MAX_INTRINSICS_PX)
     width: int = Field(gt=0)
     height: int = Field(gt=0)
 
@@ -145,7 +155,13 @@ class Manifest(_Strict):
         names = [v.name for v in self.views]
         if len(set(names)) != len(names):
             raise ValueError("view names must be unique")
+        max_translation = MAX_TRANSLATION_M / UNIT_IN_METRES[self.units]
         for i, v in enumerate(self.views):
+            t = np.asarray(v.pose.matrix, dtype=np.float64)[:3, 3]
+            if np.abs(t).max() > max_translation:
+                raise ValueError(f"views[{i}] ({v.name}): pose translation {np.abs(t).max():.3g} {self.units} is farther "
+                                 f"than {max_translation:.3g} {self.units} ({MAX_TRANSLATION_M:.0e} m) from the origin; "
+                                 "express the poses in a local frame")
             if self.segments is None:
                 missing = [k for k in ("intrinsics", "depth", "mask") if getattr(v, k) is None]
                 if missing:

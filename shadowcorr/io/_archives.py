@@ -18,10 +18,11 @@ import re
 import stat
 import tarfile
 import zipfile
+import zlib
 from typing import IO, Any
 
 from ..errors import BundleError, Problem
-from ._limits import MANIFEST_NAME, MiB, BundleLimits
+from ._limits import MANIFEST_NAME, MEMBER_RATIO_MIN_BYTES, BundleLimits
 from ._manifest import parse_manifest, raw_file_refs
 from ._sources import normalize_bundle_path
 
@@ -51,9 +52,6 @@ class _TooBig(Exception):
     pass
 
 
-#: Members expanding to less than this are not ratio-checked one by one (a small file of
-#: zeros compresses far beyond any bomb ratio and is harmless).
-_MEMBER_RATIO_MIN_BYTES = 1 * MiB
 
 
 def _is_manifest(name: str) -> bool:
@@ -169,7 +167,7 @@ def _read_zip(
         problems += _size_problems(0, declared, sum(i.compress_size for _, i in wanted) or archive_size, limits)
         for _, info in wanted:
             ratio = info.file_size / max(info.compress_size, 1)
-            if info.file_size > _MEMBER_RATIO_MIN_BYTES and ratio > limits.max_compression_ratio:
+            if info.file_size > MEMBER_RATIO_MIN_BYTES and ratio > limits.max_compression_ratio:
                 problems.append(Problem(loc=f"archive[{info.filename!r}]",
                                         msg=f"compression ratio {ratio:.0f}:1 exceeds "
                                         f"{limits.max_compression_ratio:.0f}:1 (zip bomb?)"))
@@ -195,7 +193,9 @@ def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, max_bytes: int) -> t
     try:
         with zf.open(info) as m:
             return m.read(max_bytes), None
-    except (zipfile.BadZipFile, OSError, NotImplementedError, RuntimeError, ValueError, EOFError, lzma.LZMAError) as e:
+    # zlib.error: corrupt deflate data (a flipped byte) surfaces only while decompressing.
+    except (zipfile.BadZipFile, OSError, NotImplementedError, RuntimeError, ValueError, EOFError, lzma.LZMAError,
+            zlib.error) as e:
         return b"", Problem(loc=f"archive[{info.filename!r}]", msg=f"cannot extract: {e}")
 
 
@@ -280,7 +280,7 @@ def _read_tar(
                     named.learn(name, data)
     except _TooBig as e:
         problems.append(Problem(loc="archive", msg=str(e)))
-    except (tarfile.TarError, OSError, EOFError, lzma.LZMAError, ValueError) as e:
+    except (tarfile.TarError, OSError, EOFError, lzma.LZMAError, zlib.error, ValueError) as e:
         problems.append(Problem(loc="archive", msg=f"not a readable .tar archive: {e}"))
     early = [n for n in files if not named.wants(n)]  # kept before the manifest came, not named by it
     for n in early:

@@ -6,6 +6,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 MiB = 1024 * 1024
 MANIFEST_NAME = "manifest.json"
+#: Archive members expanding to less than this are not ratio-checked one by one (a small
+#: file of zeros compresses far beyond any bomb ratio and is harmless).
+MEMBER_RATIO_MIN_BYTES = 1 * MiB
 
 
 class BundleLimits(BaseModel):
@@ -24,5 +27,13 @@ class BundleLimits(BaseModel):
     ratio_check_min_bytes: int = Field(
         32 * MiB, ge=0, description="archives expanding to less than this are not ratio-checked (harmless)"
     )
+    max_scene_pixels: int = Field(
+        64 * MiB, ge=1,
+        description="width x height summed over the views, checked from the manifest before any image is decoded "
+        "(413 too_many_pixels in the service): a few bytes of PNG can declare a 4096x4096 image",
+    )
     max_segments: int = Field(100_000, ge=1, description="point-segment bundles: number of segments")
-    max_segment_points: int = Field(20_000_000, ge=1, description="point-segment bundles: total points")
+    max_scene_points: int = Field(
+        20_000_000, ge=1,
+        description="point-segment bundles: total points, checked from the array header before it is decompressed",
+    )

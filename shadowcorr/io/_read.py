@@ -34,7 +34,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from ..bundle import Manifest, SceneBundle, View
-from ..errors import BundleError, Problem, problems_from_validation_error
+from ..errors import BundleError, Problem, SceneLimitError, problems_from_validation_error
 from ._archives import read_archive, split_root
 from ._limits import MANIFEST_NAME, BundleLimits
 from ._manifest import check_refs, parse_manifest, raw_file_refs
@@ -62,6 +62,13 @@ def _load(manifest: dict | str | bytes, source: FileSource, limits: BundleLimits
     # With a valid manifest, keep going past bad paths: the files that *are* there are
     # decoded too, so one response lists missing files and undecodable ones together.
 
+    # Decoded images cost memory in proportion to their declared size, however small their
+    # files: refuse the scene before the first image is decoded.
+    pixels = sum(v.intrinsics.width * v.intrinsics.height for v in man.views
+                 if v.intrinsics is not None and (v.depth is not None or v.mask is not None))
+    if pixels > limits.max_scene_pixels:
+        raise SceneLimitError("max_scene_pixels", pixels, limits.max_scene_pixels,
+                              "pixels of all views' images together")
     warnings: list[str] = []
     views: list[View] = []
     for i, spec in enumerate(man.views):
@@ -106,7 +113,8 @@ def load_bundle_from_parts(
 
     This is what the HTTP service uses for multipart uploads (one part per file, the
     part's filename = the path in the manifest).  Keys are normalised like manifest
-    paths; unsafe keys are problems.  Raises ``BundleError`` listing every problem.
+    paths; unsafe keys are problems.  Raises ``BundleError`` listing every problem, or
+    ``SceneLimitError`` as :func:`load_bundle` does.
     """
     limits = limits or BundleLimits()
     problems: list[Problem] = []
@@ -135,7 +143,9 @@ def load_bundle_from_parts(
 def load_bundle(source: str | Path | bytes, *, limits: BundleLimits | None = None) -> SceneBundle:
     """Load a bundle from a directory, a ``manifest.json`` path, a .zip/.tar(.gz) path, or raw archive bytes.
 
-    Raises ``BundleError`` (a ``ValueError``) whose ``.problems`` lists every problem found.
+    Raises ``BundleError`` (a ``ValueError``) whose ``.problems`` lists every problem found,
+    or :class:`~shadowcorr.errors.SceneLimitError` for a scene larger than ``limits`` allow
+    (``max_scene_pixels``, ``max_scene_points``), before the images or points are decoded.
     """
     limits = limits or BundleLimits()
     if isinstance(source, (bytes, bytearray, memoryview)):

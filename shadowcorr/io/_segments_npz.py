@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import io
 import zipfile
+import zlib
 
 import numpy as np
 
 from ..bundle import PointSegments
-from ..errors import BundleError, Problem
+from ..errors import BundleError, Problem, SceneLimitError
 from . import images
-from ._limits import BundleLimits
+from ._limits import MEMBER_RATIO_MIN_BYTES, BundleLimits
 
 _SEG_REQUIRED = ("points", "lengths", "view", "instance")
 _SEG_OPTIONAL = ("object",)
@@ -37,14 +38,32 @@ def read_segments_npz(data: bytes, n_views: int, limits: BundleLimits, warnings:
             if key not in _SEG_REQUIRED + _SEG_OPTIONAL:
                 warnings.append(f"{base}: ignored unknown array {key!r}")
                 continue
+            loc = f"{base}.{key}"
+            ratio = info.file_size / max(info.compress_size, 1)
             try:
                 with zf.open(info) as m:
-                    raw = m.read(info.file_size + 1)
-            except Exception as e:
-                problems.append(Problem(loc=f"{base}.{key}", msg=f"cannot extract: {e}"))
+                    # The header says what the array costs: refuse before decompressing the rest.
+                    head = m.read(min(info.file_size, images.NPY_HEADER_BYTES))
+                    shape, _, _ = images.npy_header(head, loc=loc)
+                    if key == "points" and len(shape) == 2 and shape[0] > limits.max_scene_points:
+                        raise SceneLimitError("max_scene_points", shape[0], limits.max_scene_points,
+                                              "points in the segments .npz")
+                    if info.file_size > MEMBER_RATIO_MIN_BYTES and ratio > limits.max_compression_ratio:
+                        problems.append(Problem(loc=loc, msg=f"compression ratio {ratio:.0f}:1 exceeds "
+                                                f"{limits.max_compression_ratio:.0f}:1 (zip bomb?)"))
+                        continue
+                    raw = head + m.read(info.file_size + 1 - len(head))
+            except SceneLimitError:
+                raise
+            except BundleError as e:
+                problems += e.problems
+                continue
+            except (zipfile.BadZipFile, OSError, NotImplementedError, RuntimeError, ValueError, EOFError,
+                    zlib.error) as e:
+                problems.append(Problem(loc=loc, msg=f"cannot extract: {e}"))
                 continue
             try:
-                arrays[key] = images.read_npy(raw, max_elements=3 * limits.max_segment_points, loc=f"{base}.{key}")
+                arrays[key] = images.read_npy(raw, max_elements=3 * limits.max_scene_points, loc=loc)
             except BundleError as e:
                 problems += e.problems
     for key in _SEG_REQUIRED:
@@ -56,8 +75,6 @@ def read_segments_npz(data: bytes, n_views: int, limits: BundleLimits, warnings:
     pts = arrays["points"]
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.dtype.kind not in "fiu":
         problems.append(Problem(loc=f"{base}.points", msg=f"must be a numeric (P, 3) array, got {pts.dtype} {pts.shape}"))
-    elif pts.shape[0] > limits.max_segment_points:
-        problems.append(Problem(loc=f"{base}.points", msg=f"{pts.shape[0]} points; the limit is {limits.max_segment_points}"))
     elif not np.isfinite(pts).all():
         problems.append(Problem(loc=f"{base}.points", msg="points must be finite (found NaN or inf)"))
     ints: dict[str, np.ndarray] = {}

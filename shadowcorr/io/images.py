@@ -224,25 +224,38 @@ def read_depth_png(
 
 
 # --------------------------------------------------------------------------- NPY
-def read_npy(data: bytes, *, max_elements: int | None = None, loc: str = "") -> np.ndarray:
-    """Parse a ``.npy`` safely: header first, no object dtypes, ``allow_pickle=False``."""
-    f = io.BytesIO(data)
+#: Bytes that always hold a ``.npy`` header (format 1.0 headers end within 64 KiB; longer
+#: 2.0 headers are refused by :func:`npy_header` when cut off).
+NPY_HEADER_BYTES = 65536 + 16
+
+
+def npy_header(head: bytes, *, loc: str = "") -> tuple[tuple[int, ...], np.dtype, int]:
+    """(shape, dtype, header length) of a ``.npy`` from its first bytes (:data:`NPY_HEADER_BYTES`
+    suffice), without reading the data: what an array will cost is known before it is
+    decompressed.  Object dtypes are refused here."""
+    f = io.BytesIO(head)
     try:
         version = np.lib.format.read_magic(f)
         if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
         elif version == (2, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
         else:
             raise ValueError(f"unsupported .npy format version {version}")
     except Exception as e:
         raise _fail(loc, f"not a valid .npy file: {e}") from None
     if dtype.hasobject:
         raise _fail(loc, ".npy holds an object array; refused (loading it would unpickle arbitrary code)")
-    n = math.prod(int(s) for s in shape)
+    return tuple(int(s) for s in shape), dtype, f.tell()
+
+
+def read_npy(data: bytes, *, max_elements: int | None = None, loc: str = "") -> np.ndarray:
+    """Parse a ``.npy`` safely: header first, no object dtypes, ``allow_pickle=False``."""
+    shape, dtype, header_bytes = npy_header(data, loc=loc)
+    n = math.prod(shape)
     if max_elements is not None and n > max_elements:
         raise _fail(loc, f".npy array has {n} elements, more than the limit of {max_elements}")
-    if n * dtype.itemsize > len(data) - f.tell():
+    if n * dtype.itemsize > len(data) - header_bytes:
         raise _fail(loc, f".npy is truncated: header declares shape {tuple(shape)} {dtype} but the data is shorter")
     try:
         arr = np.load(io.BytesIO(data), allow_pickle=False)

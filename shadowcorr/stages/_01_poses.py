@@ -209,7 +209,12 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     if order.size < 4 * _COVARIANCE_NEIGHBOURS:
         return None
     points, moving_normals = grid.reshape(3, -1)[:, order], normals.reshape(3, -1)[:, order]
-    coarse = small_gicp.voxelgrid_sampling(points.T, _COARSE_SPACING * config.pose_point_spacing, 1)
+    # small_gicp's voxel grid holds 2^20 cells either side of the origin (the scene's centre
+    # here) and prints a warning per point beyond; points that far from the scene's centre
+    # cannot overlap another view, so they are left out of the coarse cloud.
+    coarse_spacing = _COARSE_SPACING * config.pose_point_spacing
+    in_range = np.abs(points).max(axis=0) < (1 << 19) * coarse_spacing
+    coarse = small_gicp.voxelgrid_sampling(points.T[in_range] if not in_range.all() else points.T, coarse_spacing, 1)
     if coarse.size() < 4 * _COVARIANCE_NEIGHBOURS:
         return None
     coarse_tree = small_gicp.KdTree(coarse, 1)

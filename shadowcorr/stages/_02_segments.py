@@ -251,7 +251,9 @@ def _pixel_stride(view: View, blobs: Blobs, max_depth: float, scale: float, conf
     if d.size == 0:
         return 1
     footprint = float(np.median(d)) * scale / max(view.intrinsics.fx, view.intrinsics.fy)
-    return max(1, int(config.pixel_spacing * config.downsample_size / footprint))
+    # A stride beyond the frame samples one pixel all the same; capping it keeps the pixel
+    # arithmetic in range however small a footprint the depth and intrinsics declare.
+    return max(1, int(min(config.pixel_spacing * config.downsample_size / footprint, max(view.depth.shape))))
 
 
 def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Segments:
