@@ -6,7 +6,7 @@ Each command runs ``--repeats`` times as a new process (the way a user or a scri
 the table shows the median and the fastest wall time and the median CPU time (user + system,
 less sensitive than wall time to other load on the machine), next to a bare
 ``python -c pass`` for the interpreter's own start.  Also reports whether torch was imported (``-X importtime``).
-Target (issue 12): ``--version`` and ``--help`` in <= 0.3 s.
+Target: ``--version`` and ``--help`` in <= 0.3 s.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fault benchmark: the hostile and broken clients of issue 13, against a real server on 127.0.0.1.
+"""Fault benchmark: hostile and broken clients against a real server on 127.0.0.1.
 
 Starts ``python -m service`` (default settings except ``--workers`` and a 2 s
 shutdown grace) and reproduces, printing what the server held:
@@ -14,7 +14,12 @@ shutdown grace) and reproduces, printing what the server held:
 4. **memory**: eight concurrent 120 MiB uploads; resident memory of the main process
    (psutil, sampled every 20 ms) before, at peak and after;
 5. **archives**: a valid bundle zipped with a 400 MiB member the manifest does not name;
-   the status, and the peak resident memory of the worker processes meanwhile.
+   the status, and the peak resident memory of the worker processes meanwhile;
+6. **small uploads that would exhaust memory**: a checkerboard mask of one id (a million
+   one-pixel runs), a point-segment npz declaring 20 M points, 16 nearly empty 4096 x 4096
+   views; then corrupt deflate data and numbers that overflow (``fx = 1e308``, ``depth.scale
+   = 1e-30``, a pose 1e300 away): each one's status, error code, time to answer and the
+   worker's growth in peak resident memory.
 
     .venv/bin/python benchmarks/bench_faults.py
     .venv/bin/python benchmarks/bench_faults.py --workers 2 --skip memory
@@ -44,7 +49,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from tests.harness import ServerProcess, add_zeros_member, zipped_bundle  # noqa: E402
+from tests import hostile  # noqa: E402
+from tests.harness import ServerProcess, add_zeros_member, zip_files, zipped_bundle  # noqa: E402
 
 MiB = 1024 * 1024
 SAMPLE_DIR = ROOT / "examples" / "ue_sample"
@@ -248,6 +254,50 @@ def bench_archive(server: ServerProcess, tiny: tuple[bytes, dict, dict[str, byte
           f"(+{(sampler.peak - base) / MiB:.0f} MiB)")
 
 
+def _worker_hwm_growth(pid: int, send: Callable[[], httpx.Response]) -> tuple[httpx.Response, float, int]:
+    """Send; (response, seconds, bytes the worker's peak RSS rose above its RSS before)."""
+    def status_kb(field: str) -> int:
+        with open(f"/proc/{pid}/status") as fh:
+            return int(next(line for line in fh if line.startswith(field + ":")).split()[1])
+
+    with open(f"/proc/{pid}/clear_refs", "w") as fh:
+        fh.write("5")  # the kernel's high-water mark starts again from the current RSS
+    before = status_kb("VmRSS")
+    t0 = time.perf_counter()
+    r = send()
+    return r, time.perf_counter() - t0, (status_kb("VmHWM") - before) * 1024
+
+
+def bench_hostile(server: ServerProcess, tiny: tuple[bytes, dict, dict[str, bytes]]) -> None:
+    print("\n[6] small uploads that would cost gigabytes, corrupt data and overflowing numbers (one worker's memory)")
+    zipped, manifest, files = tiny
+
+    def overflowing(change: Callable[[dict], None]) -> Callable[[], tuple[bytes, str]]:
+        def build() -> tuple[bytes, str]:
+            m = json.loads(json.dumps(manifest))
+            change(m)
+            return zip_files({"manifest.json": json.dumps(m).encode(), **files}), "application/zip"
+        return build
+
+    cases: list[tuple[str, Callable[[], tuple[bytes, str]]]] = [
+        ("checkerboard mask, 1920x1080, one id", hostile.checkerboard_mask_bundle),
+        ("point-segment npz of 20 M points", hostile.huge_point_npz_bundle),
+        ("16 views of 4096x4096, nearly empty", hostile.many_empty_pixels_bundle),
+        ("corrupt deflate data in a member", hostile.corrupt_deflate_bundle),
+        ("intrinsics.fx = 1e308", overflowing(lambda m: m["views"][0]["intrinsics"].update(fx=1e308))),
+        ("depth.scale = 1e-30", overflowing(lambda m: m["views"][0]["depth"].update(scale=1e-30))),
+        ("pose translated by 1e300", overflowing(lambda m: m["views"][0]["pose"]["matrix"][0].__setitem__(3, 1e300))),
+    ]
+    for label, build in cases:
+        body, content_type = build()
+        (worker,) = server.worker_processes()
+        r, took, growth = _worker_hwm_growth(worker.pid, lambda: httpx.post(
+            server.url + "/correspond", content=body, headers={"Content-Type": content_type}, timeout=600))
+        code = r.json().get("error", "") if r.status_code != 200 else "labelled"
+        print(f"  {label:<40} upload {len(body) / 1e3:8.1f} kB: {r.status_code} {code:<16} after {took:5.2f} s, "
+              f"worker peak +{growth / MiB:.0f} MiB")
+
+
 def bench_shutdown(server: ServerProcess, grace_s: float) -> None:
     print(f"\n[3] SIGTERM while a long request runs (graceful_shutdown_s {grace_s:g})")
     if not SAMPLE_DIR.is_dir():
@@ -285,7 +335,8 @@ def main() -> None:
     p.add_argument("--uploads", type=int, default=8, help="concurrent large uploads (item 4)")
     p.add_argument("--upload-mib", type=int, default=120)
     p.add_argument("--unnamed-mib", type=int, default=400, help="size of the unnamed archive member (item 5)")
-    p.add_argument("--skip", default="", help="comma-separated items to skip: stalled,costly,memory,archive,shutdown")
+    p.add_argument("--skip", default="",
+                   help="comma-separated items to skip: stalled,costly,memory,archive,hostile,shutdown")
     args = p.parse_args()
     skip = set(filter(None, args.skip.split(",")))
     grace = 2.0
@@ -304,6 +355,12 @@ def main() -> None:
             bench_memory(server, args.uploads, args.upload_mib * MiB)
         if "archive" not in skip:
             bench_archive(server, tiny, args.unnamed_mib)
+        if "hostile" not in skip:
+            hostile_server = ServerProcess(["--workers", "1"]).start()
+            try:
+                bench_hostile(hostile_server, tiny)
+            finally:
+                hostile_server.stop()
         if "shutdown" not in skip:
             bench_shutdown(server, grace)
     finally:

@@ -182,7 +182,7 @@ class PerturbationStep(_Frozen):
 
 
 class PerturbationDistribution(_Frozen):
-    """Which perturbations a scene gets, and how strong (defaults: the ranges of issue 14)."""
+    """Which perturbations a scene gets, and how strong (defaults: the ranges a field rover sees)."""
 
     clean_prob: Probability = Field(0.15, description="chance a scene gets no perturbation at all")
     depth_noise: DepthNoiseRange = DepthNoiseRange()
