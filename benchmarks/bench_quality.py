@@ -104,12 +104,41 @@ PERTURBATIONS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "split20%": ("20 % of masks split by a line", "split_masks", {"share": 0.20}),
     "merge10%": ("10 % of touching mask pairs merged", "merge_touching", {"share": 0.10}),
     "drop10%": ("10 % of masks dropped", "drop_masks", {"share": 0.10}),
+    # sensor artefacts
+    "depth1%corr4px": ("depth noise σ = 1 % at 7.5 m, correlated over 4 px (a stereo window)", "depth_noise",
+                       {"fraction": 0.01, "correlation_px": 4.0}),
+    "mixed-edges": ("mixed pixels: every depth-edge pixel floats between the rock and what is behind it",
+                    "mixed_pixels", {"share": 1.0}),
+    # the single errors the combined rows are made of (where not above already)
+    "pose0.5/1.25cm": ("each camera rotated 0.5° and moved 1.25 cm", "pose_error",
+                       {"rotation_deg": 0.5, "translation_cm": 1.25}),
+    "pose1/2.5cm": ("each camera rotated 1° and moved 2.5 cm", "pose_error", {"rotation_deg": 1.0, "translation_cm": 2.5}),
+    "pose2/5cm": ("each camera rotated 2° and moved 5 cm", "pose_error", {"rotation_deg": 2.0, "translation_cm": 5.0}),
+    "erode3": ("masks eroded 3 px", "morph_masks", {"px": -3}),
+    "split5%": ("5 % of masks split by a line", "split_masks", {"share": 0.05}),
+    "split10%": ("10 % of masks split by a line", "split_masks", {"share": 0.10}),
+    "merge5%": ("5 % of touching mask pairs merged", "merge_touching", {"share": 0.05}),
+    "drop5%": ("5 % of masks dropped", "drop_masks", {"share": 0.05}),
+    "holes2%": ("2 % of valid depth pixels invalid, in ~16 px blobs", "depth_holes", {"fraction": 0.02}),
+    "holes5%": ("5 % of valid depth pixels invalid, in ~16 px blobs", "depth_holes", {"fraction": 0.05}),
+}
+#: Combined errors, as a rover's data has them all at once: name -> (description, the single
+#: perturbations above applied in this order: the segmenter's merges and splits on whole
+#: masks, then erosion and misses, then the depth sensor, then the poses).  The report sets
+#: each row's loss beside the sum of its parts' losses, so compounding shows.
+COMBINED: dict[str, tuple[str, tuple[str, ...]]] = {
+    "mild": ("mild field errors: depth 0.5 %, poses 0.5° / 1.25 cm, masks eroded 2 px, 5 % split, 5 % merged, "
+             "5 % dropped", ("merge5%", "split5%", "erode2", "drop5%", "depth0.5%", "pose0.5/1.25cm")),
+    "field": ("field errors: depth 1 %, poses 1° / 2.5 cm, eroded 3 px, 10 % split, 5 % merged, 5 % dropped, "
+              "2 % holes", ("merge5%", "split10%", "erode3", "drop5%", "depth1%", "holes2%", "pose1/2.5cm")),
+    "harsh": ("harsh field errors: depth 2 %, poses 2° / 5 cm, eroded 5 px, 20 % split, 10 % merged, 10 % dropped, "
+              "5 % holes", ("merge10%", "split20%", "erode5", "drop10%", "depth2%", "holes5%", "pose2/5cm")),
 }
 #: Perturbations that use no randomness: the real scene's repeats would all be the same run.
 DETERMINISTIC = frozenset(name for name, (_, fn, _) in PERTURBATIONS.items() if fn == "morph_masks")
-#: The rigs the perturbations are applied to (by default).
+#: The rigs the single perturbations are applied to (by default); combined rows run on every rig.
 NOISE_RIGS = ("syn:4v", "real:0246")
-QUICK_PERTURBATIONS = ("depth1%", "rot1", "erode5", "split20%", "merge10%")
+QUICK_PERTURBATIONS = ("depth1%", "rot1", "erode5", "split20%", "merge10%", "mild", "field")
 QUICK_RIGS = ("syn:4v", *REAL_RIGS)
 
 
@@ -127,19 +156,27 @@ class Condition:
     @property
     def description(self) -> str:
         rig = (SYNTH_RIGS.get(self.rig) or REAL_RIGS[self.rig])[0]
-        return rig if self.perturbation is None else f"{rig}; {PERTURBATIONS[self.perturbation][0]}"
+        if self.perturbation is None:
+            return rig
+        return f"{rig}; {(PERTURBATIONS.get(self.perturbation) or COMBINED[self.perturbation])[0]}"
 
 
 def all_conditions(quick: bool, noise_rigs: Sequence[str] = NOISE_RIGS) -> list[Condition]:
-    """Every row of the table, in print order: synthetic rigs, their noise, real rigs, their noise."""
+    """Every row of the table, in print order: synthetic rigs, their single errors, real rigs,
+    their single errors; then the combined errors on every rig."""
     rigs = [r for r in (*SYNTH_RIGS, *REAL_RIGS) if not quick or r in QUICK_RIGS]
-    perturbations = QUICK_PERTURBATIONS if quick else tuple(PERTURBATIONS)
+    perturbations = QUICK_PERTURBATIONS if quick else (*PERTURBATIONS, *COMBINED)
+    singles = [p for p in perturbations if p in PERTURBATIONS]
+    combined = [p for p in perturbations if p in COMBINED]
     rows = []
     for kind in ("syn:", "real:"):
         for rig in (r for r in rigs if r.startswith(kind)):
             rows.append(Condition(rig))
         for rig in (r for r in rigs if r.startswith(kind) and r in noise_rigs):
-            rows.extend(Condition(rig, p) for p in perturbations)
+            rows.extend(Condition(rig, p) for p in singles)
+    for kind in ("syn:", "real:"):
+        for rig in (r for r in rigs if r.startswith(kind)):
+            rows.extend(Condition(rig, p) for p in combined)
     return rows
 
 
@@ -254,10 +291,14 @@ def perturbation_seed(scene_key: str, perturbation: str, repeat: int) -> int:
 
 
 def perturb(bundle: Any, perturbation: str, seed: int) -> Any:
+    """The bundle under one perturbation, single or combined (its parts in order, one stream)."""
     from shadowcorr.synth import perturb as perturbations
 
-    _, fn, kwargs = PERTURBATIONS[perturbation]
-    return getattr(perturbations, fn)(bundle, np.random.default_rng(seed), **kwargs)
+    rng = np.random.default_rng(seed)
+    for part in COMBINED[perturbation][1] if perturbation in COMBINED else (perturbation,):
+        _, fn, kwargs = PERTURBATIONS[part]
+        bundle = getattr(perturbations, fn)(bundle, rng, **kwargs)
+    return bundle
 
 
 def segment_truth(bundle: Any, result: Any) -> np.ndarray:
@@ -459,8 +500,41 @@ def render_tables(summary: dict[str, dict[str, dict[str, Any]]], conditions: lis
         cells = summary[c.name]
         flag = [f"{cells[m]['flag_precision']:.0f} / {cells[m]['flag_recall']:.0f}" if m in cells else "–" for m in methods]
         lines.append(f"| {c.name} | " + " | ".join(flag).replace("nan", "–") + " |")
+    lines += compounding_table(summary, rows, methods)
     lines += ["", "Conditions:", ""] + [f"- `{c.name}`: {c.description}" for c in rows]
     return "\n".join(lines) + "\n"
+
+
+def compounding(summary: dict[str, dict[str, dict[str, Any]]], condition: Condition, method: str
+                ) -> tuple[float, float | None] | None:
+    """(average-purity loss of a combined row against its rig's clean row, the sum of its parts'
+    losses where every part ran on that rig, else None); None without the clean row."""
+    def purity(name: str) -> float | None:
+        stats = summary.get(name, {}).get(method)
+        return stats["average_purity"]["mean"] if stats and stats.get("average_purity", {}).get("n") else None
+
+    clean, combined = purity(condition.rig), purity(condition.name)
+    if clean is None or combined is None:
+        return None
+    parts = [purity(f"{condition.rig}+{p}") for p in COMBINED[condition.perturbation][1]]
+    return clean - combined, None if None in parts else sum(clean - p for p in parts)
+
+
+def compounding_table(summary: dict[str, dict[str, dict[str, Any]]], rows: list[Condition],
+                      methods: list[str]) -> list[str]:
+    """Markdown lines: each combined row's loss beside the sum of its single errors' losses."""
+    combined = [c for c in rows if c.perturbation in COMBINED]
+    if not combined:
+        return []
+    lines = ["", "### combined errors: average-purity loss against the clean row (sum of the parts' single losses)", "",
+             "| condition | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for c in combined:
+        cells = []
+        for m in methods:
+            got = compounding(summary, c, m)
+            cells.append("–" if got is None else f"{got[0]:.2f}" + ("" if got[1] is None else f" ({got[1]:.2f})"))
+        lines.append(f"| {c.name} | " + " | ".join(cells) + " |")
+    return lines
 
 
 # ---------------------------------------------------------------- main

@@ -27,7 +27,7 @@ TINY = {  # 4-5 rocks of 60-140 cm seen from 400 cm at 192x108 px: each rock a f
     "width": 192, "height": 108, "focal_px": 1615.0 / 10, "renderer": "raster", "background_depth": "invalid",
     "settle_max_time": 3.0,
 }
-CONDITIONS = "syn:4v,syn:4v+split20%,syn:2v-opposite,real:04+drop10%"
+CONDITIONS = "syn:4v,syn:4v+split20%,syn:4v+mild,syn:2v-opposite,real:04+drop10%"
 
 
 def _load_bench():
@@ -61,9 +61,9 @@ def test_tables_agree_with_records(run, capsys):
     methods = ["shadowcorr", "meanshift"]
     assert summary["methods"] == methods
 
-    # 3 synthetic rows x 2 scenes + the real noisy row x 2 seeds, each by 2 methods
+    # 4 synthetic rows x 2 scenes + the real noisy row x 2 seeds, each by 2 methods
     runs = {(r["condition"], r["scene"], r["method"]) for r in records}
-    assert len(records) == len(runs) == (3 * 2 + 2) * 2
+    assert len(records) == len(runs) == (4 * 2 + 2) * 2
     assert not [r for r in records if "error" in r]
     real = [r for r in records if r["rig"] == "real:04"]
     assert len({r["perturbation_seed"] for r in real}) == 2, "each repeat of the real scene has its own seed"
@@ -98,6 +98,13 @@ def test_tables_agree_with_records(run, capsys):
             expected = 100.0 * hit / flagged if flagged else math.nan
             assert stats["flag_precision"] == pytest.approx(expected, nan_ok=True)
 
+    # the combined row's loss against the clean row (its parts did not run: no sum beside it)
+    row = re.search(r"^\| syn:4v\+mild \| (.*) \|$", table.split("### combined errors")[1], re.M)
+    for method, cell in zip(methods, (c.strip() for c in row.group(1).split("|"))):
+        cells = summary["cells"]
+        loss = cells["syn:4v"][method]["average_purity"]["mean"] - cells["syn:4v+mild"][method]["average_purity"]["mean"]
+        assert cell == f"{loss:.2f}"
+
 
 def test_rerun_reuses_cache_and_records(run, capsys):
     bench, argv, tmp = run
@@ -107,7 +114,7 @@ def test_rerun_reuses_cache_and_records(run, capsys):
     # --resume with every run already recorded: nothing runs, the same records and table come out
     assert bench.main([*argv, "--resume"]) == 0
     printed = capsys.readouterr().out
-    assert "0 runs in 0 tasks (16 kept" in printed
+    assert "0 runs in 0 tasks (20 kept" in printed
     assert (tmp / "out" / "records.jsonl").read_text() == before
 
 
@@ -120,4 +127,7 @@ def test_wrong_segments_and_conditions():
     names = [c.name for c in bench.all_conditions(quick=False)]
     assert len(names) == len(set(names))
     assert {"syn:4v", "syn:8v", "real:all8", "syn:4v+depth2%", "real:0246+merge10%"} <= set(names)
+    # combined errors on every rig, each made of single perturbations of the catalogue
+    assert {f"{rig}+{k}" for rig in (*bench.SYNTH_RIGS, *bench.REAL_RIGS) for k in bench.COMBINED} <= set(names)
+    assert all(p in bench.PERTURBATIONS for _, parts in bench.COMBINED.values() for p in parts)
     assert [c.name for c in bench.select(bench.all_conditions(quick=True), "real:0*")][:2] == ["real:0246", "real:012"]

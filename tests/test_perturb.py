@@ -101,6 +101,45 @@ def test_depth_noise_grows_with_depth_squared(scene):
     assert abs(((n0.depth[v0.depth > 0] - z) / (fraction * z * z / (z_ref / 100))).std() - 1.0) < 0.05
 
 
+def test_correlated_depth_noise_keeps_sigma_and_makes_neighbours_err_together(scene):
+    fraction = 0.01
+    z_ref = perturb.DEPTH_NOISE_REFERENCE_CM
+    for correlation_px, neighbour_correlation in ((0.0, (-0.05, 0.05)), (4.0, (0.8, 1.0))):
+        noisy = perturb.depth_noise(scene, _rng(), fraction, correlation_px=correlation_px)
+        residual = []
+        pairs = []
+        for clean, out in zip(scene.views, noisy.views):
+            valid = clean.depth > 0
+            assert np.array_equal(out.depth > 0, valid)
+            z = clean.depth.astype(np.float64)
+            r = np.where(valid, (out.depth - z) / np.maximum(fraction * z * z / z_ref, 1e-12), np.nan)
+            residual.append(r[valid])
+            both = valid[:, 1:] & valid[:, :-1]
+            pairs.append(np.stack([r[:, 1:][both], r[:, :-1][both]]))
+        residual, pairs = np.concatenate(residual), np.concatenate(pairs, axis=1)
+        assert abs(residual.std() - 1.0) < 0.15, "each pixel keeps its sigma"
+        lo, hi = neighbour_correlation
+        assert lo < np.corrcoef(pairs)[0, 1] < hi
+
+
+def test_mixed_pixels_float_only_at_depth_edges_between_near_and_far(scene):
+    out = perturb.mixed_pixels(scene, _rng(), 1.0)
+    changed_any = 0
+    for clean, mixed in zip(scene.views, out.views):
+        d = clean.depth.astype(np.float64)
+        valid = d > 0
+        near = ndimage.minimum_filter(np.where(valid, d, np.inf), size=3)
+        far = ndimage.maximum_filter(np.where(valid, d, 0.0), size=3)
+        edge = valid & (far - near > 0.05 * d)
+        changed = mixed.depth != clean.depth
+        assert not (changed & ~edge).any(), "flat surfaces and invalid pixels stay as they were"
+        m = mixed.depth[changed].astype(np.float64)
+        assert ((m >= near[changed] - 1e-3) & (m <= far[changed] + 1e-3)).all()
+        assert np.array_equal(mixed.mask, clean.mask)
+        changed_any += int(changed.sum())
+    assert changed_any > 100
+
+
 def test_depth_holes_cut_the_given_share_in_blobs(scene):
     holed = perturb.depth_holes(scene, _rng(1), 0.1, blob_px=12)
     for clean, out in zip(scene.views, holed.views):

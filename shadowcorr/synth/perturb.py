@@ -37,6 +37,7 @@ __all__ = [
     "depth_holes",
     "depth_noise",
     "drop_masks",
+    "mixed_pixels",
     "merge_touching",
     "morph_masks",
     "pose_error",
@@ -127,20 +128,59 @@ def _all_masks(views: list[View]) -> tuple[np.ndarray, np.ndarray]:
 
 # --------------------------------------------------------------------------- depth
 def depth_noise(bundle: SceneBundle, rng: np.random.Generator, fraction: float, *,
-                z_ref_cm: float = DEPTH_NOISE_REFERENCE_CM) -> SceneBundle:
+                z_ref_cm: float = DEPTH_NOISE_REFERENCE_CM, correlation_px: float = 0.0) -> SceneBundle:
     """Gaussian depth noise growing with the square of depth, like a stereo or ToF sensor.
 
     ``sigma(z) = fraction * z^2 / z_ref``: ``fraction`` is the noise relative to depth at
     ``z_ref`` (750 cm, the rig's working distance); e.g. 0.01 gives 7.5 cm at 7.5 m and
     1.9 cm at 3.75 m.  Invalid pixels stay invalid; valid ones stay valid.
+
+    ``correlation_px`` > 0 makes the noise correlated over about that many pixels, as a
+    stereo matcher's correlation window makes it: white noise smoothed by a Gaussian of
+    that standard deviation and rescaled to unit variance, so each pixel's ``sigma`` is
+    unchanged while neighbours err together (which averaging over a surface cannot remove).
     """
     if fraction < 0:
         raise ValueError(f"fraction must be >= 0, got {fraction}")
+    if correlation_px < 0:
+        raise ValueError(f"correlation_px must be >= 0, got {correlation_px}")
     z_ref = z_ref_cm * unit_scale("cm", bundle.units)
     views = []
     for v in _image_views(bundle):
         z = np.where(v.depth > 0, v.depth, 0.0).astype(np.float64)
-        views.append(replace(v, depth=noisy_depth(rng, v.depth, fraction * z * z / z_ref, 0.0)))
+        sigma = fraction * z * z / z_ref
+        if correlation_px > 0:
+            field = ndimage.gaussian_filter(rng.standard_normal(z.shape), correlation_px)
+            field /= max(float(field.std()), 1e-12)
+            depth = np.where(v.depth > 0, np.maximum(z + sigma * field, 1e-3), 0.0).astype(np.float32)
+        else:
+            depth = noisy_depth(rng, v.depth, sigma, 0.0)
+        views.append(replace(v, depth=depth))
+    return replace(bundle, views=views, warnings=list(bundle.warnings))
+
+
+def mixed_pixels(bundle: SceneBundle, rng: np.random.Generator, share: float = 1.0, *,
+                 jump: float = 0.05) -> SceneBundle:
+    """Mixed ("flying") pixels at depth edges, as a ToF sensor or a stereo matcher's window
+    makes them where a rock's silhouette meets what lies behind it.
+
+    A valid pixel whose 3 x 3 neighbourhood spans a depth jump of more than ``jump`` times
+    its own depth is, with probability ``share``, given a depth drawn uniformly between the
+    nearest and the farthest valid depth of that neighbourhood: a point floating between
+    the rock and the ground.  Masks are unchanged (the segmenter saw the colour image).
+    """
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"share must lie in [0, 1], got {share}")
+    views = []
+    for v in _image_views(bundle):
+        depth = v.depth.astype(np.float64)
+        valid = depth > 0
+        near = ndimage.minimum_filter(np.where(valid, depth, np.inf), size=3)
+        far = ndimage.maximum_filter(np.where(valid, depth, 0.0), size=3)
+        edge = valid & (far - near > jump * depth) & (rng.random(depth.shape) < share)
+        out = v.depth.copy()
+        out[edge] = near[edge] + rng.random(int(edge.sum())) * (far[edge] - near[edge])
+        views.append(replace(v, depth=out))
     return replace(bundle, views=views, warnings=list(bundle.warnings))
 
 
