@@ -162,7 +162,7 @@ async def _shutdown_deadline(runtime: Runtime) -> None:
         "shutting_down",
         f"the service is shutting down and this request did not finish within graceful_shutdown_s = {grace:g} s; "
         "retry it (another instance may take it)",
-        headers={"Retry-After": str(runtime.settings.retry_after_s), "Connection": "close"},
+        headers={"Retry-After": str(runtime.settings.retry_after_s)},
     )
 
 
@@ -191,7 +191,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app, on_error=lambda code: metrics.errors.labels(code).inc())
     token = settings.auth_token.get_secret_value() if settings.auth_token is not None else None
-    app.add_middleware(AccessMiddleware, metrics=metrics, token=token, max_header_bytes=settings.max_header_bytes)
+    app.add_middleware(AccessMiddleware, metrics=metrics, runtime=runtime, token=token,
+                       max_header_bytes=settings.max_header_bytes)
 
     @app.post(
         "/correspond",

@@ -56,7 +56,7 @@ def _metavar(name: str) -> str:
         return "MS"
     if name.endswith("_bytes"):
         return "BYTES"
-    return {"host": "HOST", "device": "DEVICE", "log_level": "LEVEL"}.get(name, "N")
+    return {"host": "HOST", "device": "DEVICE", "log_level": "LEVEL", "allow_no_auth": "BOOL"}.get(name, "N")
 
 
 def add_serve_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -105,7 +105,10 @@ def run_serve(args: argparse.Namespace) -> int:
     except ValidationError as e:
         for err in e.errors(include_url=False):
             loc = ".".join(str(x) for x in err["loc"])
-            print(f"shadowcorr serve: invalid setting {loc}: {err['msg']}", file=sys.stderr)
+            if loc:
+                print(f"shadowcorr serve: invalid setting {loc}: {err['msg']}", file=sys.stderr)
+            else:  # a rule over several settings: its message names them
+                print(f"shadowcorr serve: {err['msg'].removeprefix('Value error, ')}", file=sys.stderr)
         return 2
     except OSError as e:
         print(f"shadowcorr serve: cannot read the token file: {e}", file=sys.stderr)

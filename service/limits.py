@@ -134,10 +134,11 @@ class UploadRules:
 
 
 class _Spool:
-    """Chunks -> memory up to ``spool_bytes``, then a temporary file (written as they come, never joined)."""
+    """Chunks -> memory up to ``spool_bytes``, then a file in ``directory`` (written as they come, never joined)."""
 
-    def __init__(self, spool_bytes: int) -> None:
+    def __init__(self, spool_bytes: int, directory: str) -> None:
         self.spool_bytes = spool_bytes
+        self.directory = directory
         self.buffer = bytearray()
         self.file: Any = None
         self.size = 0
@@ -145,7 +146,7 @@ class _Spool:
     def write(self, chunk: bytes) -> None:
         self.size += len(chunk)
         if self.file is None and self.size > self.spool_bytes:
-            self.file = tempfile.NamedTemporaryFile(prefix="shadowcorr-upload-", delete=False)
+            self.file = tempfile.NamedTemporaryFile(prefix="shadowcorr-upload-", dir=self.directory, delete=False)
             self.file.write(self.buffer)
             self.buffer = bytearray()
         if self.file is not None:
@@ -165,11 +166,13 @@ class _Spool:
             os.unlink(self.file.name)
 
 
-async def receive_body(request: Request, rules: UploadRules, budget: ByteBudget) -> tuple[Upload, int]:
+async def receive_body(request: Request, rules: UploadRules, budget: ByteBudget,
+                       spool_dir: str) -> tuple[Upload, int]:
     """Receive the whole body before the request takes an admission slot.
 
-    Returns the upload and the bytes it holds of ``budget`` (the caller gives them
-    back when the request is over).  Refuses with
+    A body over ``rules.spool_bytes`` is written to a file in ``spool_dir``.  Returns the
+    upload and the bytes it holds of ``budget`` (the caller gives them back when the
+    request is over).  Refuses with
 
     * 413 over ``max_bytes`` (the declared ``Content-Length`` before a byte is read, or
       the bytes streamed, since a chunked body declares nothing and a client may lie);
@@ -191,7 +194,7 @@ async def receive_body(request: Request, rules: UploadRules, budget: ByteBudget)
             raise _too_large(rules.max_bytes, f"Content-Length is {reserved} bytes")
     if not budget.take(reserved):
         raise _over_budget(budget, rules)
-    spool = _Spool(rules.spool_bytes)
+    spool = _Spool(rules.spool_bytes, spool_dir)
     start = time.monotonic()
     try:
         while True:

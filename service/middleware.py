@@ -1,4 +1,4 @@
-"""Pure-ASGI middleware: bearer-token check, request-head size limit and per-request metrics.
+"""Pure-ASGI middleware: bearer-token check, request-head size limit, shutdown answers and per-request metrics.
 
 The head limit (request line + headers, ``max_header_bytes``) is mostly enforced by h11
 while the head arrives in pieces (see ``protocol.py``); a head that arrives complete
@@ -6,16 +6,24 @@ in one read is measured here.
 
 Pure ASGI (not ``BaseHTTPMiddleware``) so request bodies stream through untouched and
 no extra task is spawned per request.
+
+From SIGTERM on, every request is answered JSON 503 ``shutting_down`` and every response
+(those of requests still running too) carries ``Connection: close``: a client learns
+that the connection ends with its answer instead of finding it closed under a request
+it has just sent.
 """
 
 from __future__ import annotations
 
 import hmac
 import time
-from typing import Any, Awaitable, Callable
+from typing import TYPE_CHECKING, Any, Awaitable, Callable
 
-from .errors import error_response
+from .errors import ApiError, error_response
 from .metrics import ServiceMetrics, route_label
+
+if TYPE_CHECKING:
+    from .runtime import Runtime
 
 __all__ = ["AccessMiddleware"]
 
@@ -26,15 +34,23 @@ Send = Callable[[dict[str, Any]], Awaitable[None]]
 #: Routes reachable without a token: orchestrators probe health without secrets.
 PUBLIC_PATHS = frozenset({"/health"})
 
+_CLOSE = (b"connection", b"close")
+
 
 class AccessMiddleware:
-    """Counts requests by route and status, times them, and enforces the bearer token."""
+    """Counts and times requests, enforces the bearer token, answers 503 while shutting down."""
 
     def __init__(
-        self, app: Callable[..., Awaitable[None]], metrics: ServiceMetrics, token: str | None, max_header_bytes: int
+        self,
+        app: Callable[..., Awaitable[None]],
+        metrics: ServiceMetrics,
+        runtime: "Runtime",
+        token: str | None,
+        max_header_bytes: int,
     ) -> None:
         self.app = app
         self.metrics = metrics
+        self.runtime = runtime
         self._expected = f"Bearer {token}".encode() if token else None
         self.max_header_bytes = max_header_bytes
 
@@ -66,6 +82,9 @@ class AccessMiddleware:
             if message["type"] == "http.response.start":
                 status = message["status"]
                 self.metrics.request_latency.labels(route).observe(time.perf_counter() - start)
+                headers = list(message.get("headers", ()))
+                if self.runtime.shutdown_deadline is not None and _CLOSE not in headers:
+                    message = {**message, "headers": [*headers, _CLOSE]}
             await send(message)
 
         try:
@@ -80,6 +99,12 @@ class AccessMiddleware:
                 )
                 self.metrics.errors.labels("headers_too_large").inc()
                 await response(scope, receive, send_wrapper)
+                return
+            try:
+                self.runtime.check_not_shutting_down()
+            except ApiError as e:  # before the token check: it reveals nothing, and health probes need it too
+                self.metrics.errors.labels(e.code).inc()
+                await error_response(e.status, e.code, e.message, e.problems, e.headers)(scope, receive, send_wrapper)
                 return
             if not self._authorized(scope):
                 response = error_response(

@@ -9,6 +9,11 @@ time limit on receiving a request's headers.  This subclass of its h11 protocol 
   header byte a second ("slow loris") cannot hold a connection;
 * a **connection limit**: beyond ``max_connections`` open connections, a new
   connection's request is answered 503 (with ``Retry-After``) and the connection closed;
+* a **draining shutdown**: uvicorn closes idle keep-alive connections as soon as it
+  starts shutting down, so a request a client sends on one just then gets no answer at
+  all.  Here they stay open for ``graceful_shutdown_s``, where the application answers
+  every request JSON 503 ``shutting_down`` with ``Connection: close`` (see
+  ``middleware.py``); those still idle at its end are closed then;
 * **JSON error bodies** for what uvicorn / h11 refuse themselves (malformed request
   line or headers, a non-numeric ``Content-Length``, headers or a query string over
   ``max_header_bytes``: 400 / 431), in the service's one error shape
@@ -53,10 +58,12 @@ class _GuardedH11Protocol(H11Protocol):
     max_connections: int = 256
     max_header_bytes: int = 64 * 1024
     retry_after_s: int = 2
+    graceful_shutdown_s: float = 30.0
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._header_timer: asyncio.TimerHandle | None = None
+        self._drain_timer: asyncio.TimerHandle | None = None
 
     # ---------------------------------------------------------------- header timeout
     def _arm_header_timer(self) -> None:
@@ -92,6 +99,8 @@ class _GuardedH11Protocol(H11Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm_header_timer()
+        if self._drain_timer is not None:
+            self._drain_timer.cancel()
         super().connection_lost(exc)
 
     def handle_events(self) -> None:
@@ -104,6 +113,14 @@ class _GuardedH11Protocol(H11Protocol):
         super().on_response_complete()
         if not self.transport.is_closing():  # keep-alive: the next request's headers are timed too
             self._arm_header_timer()
+
+    def shutdown(self) -> None:
+        # Called by uvicorn's shutdown for every open connection.  A busy one is closed after
+        # its response (uvicorn's way); an idle one stays open until the grace period ends.
+        if self.cycle is None or self.cycle.response_complete:
+            self._drain_timer = self.loop.call_later(self.graceful_shutdown_s, super().shutdown)
+        else:
+            super().shutdown()
 
     def send_400_response(self, msg: str) -> None:
         # Called by uvicorn inside its ``except h11.RemoteProtocolError`` block.
@@ -131,11 +148,12 @@ class _GuardedH11Protocol(H11Protocol):
 
 
 def guarded_protocol(*, header_timeout_s: float, max_connections: int, max_header_bytes: int,
-                     retry_after_s: int) -> type[H11Protocol]:
+                     retry_after_s: int, graceful_shutdown_s: float) -> type[H11Protocol]:
     """The protocol class to pass as ``uvicorn.Config(http=...)``, with these limits."""
     return type("GuardedH11Protocol", (_GuardedH11Protocol,), {
         "header_timeout_s": header_timeout_s,
         "max_connections": max_connections,
         "max_header_bytes": max_header_bytes,
         "retry_after_s": retry_after_s,
+        "graceful_shutdown_s": graceful_shutdown_s,
     })

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -39,6 +40,7 @@ from .errors import ApiError, JobError
 from .limits import ByteBudget, RequestLimits, Upload, UploadRules, receive_body
 from .metrics import ServiceMetrics
 from .settings import ServiceSettings
+from .spool import SpoolDir, remove_stale_spool_dirs
 from .workers import PRIORITY_FINISH, PRIORITY_START, WorkerCrashed, WorkerPool
 
 __all__ = ["Runtime"]
@@ -92,6 +94,7 @@ class Runtime:
         self.shutdown_deadline: float | None = None  # time.monotonic() by which requests must be answered
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop_event = asyncio.Event()
+        self.spool: SpoolDir | None = None  # this server's directory for large bodies, from start()
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
@@ -105,6 +108,10 @@ class Runtime:
         """
         self.started_at = time.monotonic()
         loop = self._loop = asyncio.get_running_loop()
+        # Bodies a crashed (SIGKILLed) server was receiving would otherwise stay on disk for good.
+        for path in remove_stale_spool_dirs():
+            log.info("removed %s: spooled bodies of a server that is no longer running", path)
+        self.spool = SpoolDir()
         # torch work (threads setting, file read, state-dict checks) stays off the event loop.
         self.model = await loop.run_in_executor(self._thread, self._load_model)
         self.model_info = model_info(self.model)
@@ -141,8 +148,10 @@ class Runtime:
             self._startup_task.cancel()
             await asyncio.gather(self._startup_task, return_exceptions=True)
         await self.batcher.close()
-        await self.pool.close()
+        await self.pool.close()  # no worker reads a spooled body any more
         self._thread.shutdown(wait=True)
+        if self.spool is not None:
+            self.spool.close()
 
     # ------------------------------------------------------------------ state
     @property
@@ -182,12 +191,14 @@ class Runtime:
         s = self.settings
         model = None
         if self.model is not None:
+            # Which model runs is said by name, version and checksum; where its file lies on this
+            # machine, or lay on the machine that trained it, is no business of a client.
             model = {
                 "name": self.model.name,
                 "version": self.model.version,
                 "sha256": self.model.sha256,
-                "path": str(self.model.path) if s.model_path is not None else "(packaged default)",
-                "card": self.model.card.model_dump(mode="json"),
+                "packaged": s.model_path is None,
+                "card": _without_paths(self.model.card.model_dump(mode="json")),
             }
         return {
             "service": "shadowcorr",
@@ -259,9 +270,10 @@ class Runtime:
 
     async def receive(self, request: Any) -> tuple[Upload, int]:
         """The request's whole body (see ``limits.receive_body``), timed as stage ``read_body``."""
+        assert self.spool is not None, "receive() before start()"
         t0 = time.perf_counter()
         try:
-            return await receive_body(request, self.upload_rules, self.budget)
+            return await receive_body(request, self.upload_rules, self.budget, str(self.spool.path))
         finally:
             self.metrics.stage_latency.labels("read_body").observe(time.perf_counter() - t0)
             self.metrics.upload_bytes.set(self.budget.used)
@@ -409,3 +421,23 @@ class Ticket:
 
 def _request_options() -> tuple[str, ...]:
     return REQUEST_OPTIONS
+
+
+#: An absolute file-system path in free text (``/tmp/x``, ``C:\\x``, ``C:/x``): not inside a word,
+#: a relative path or a URL (``https://host/x``).
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/~-])(?:/|[A-Za-z]:[\\/])[^\s'\",;)]+")
+
+
+def _without_paths(value: Any) -> Any:
+    """``value`` (JSON data) with every absolute path in its strings replaced by ``<path>``.
+
+    A model card's training recipe records the paths and commands of the machine that
+    built it (``--out /tmp/synth/train``); the recipe stays, the machine's layout does not.
+    """
+    if isinstance(value, dict):
+        return {k: _without_paths(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_without_paths(v) for v in value]
+    if isinstance(value, str):
+        return _ABSOLUTE_PATH.sub("<path>", value)
+    return value

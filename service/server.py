@@ -20,9 +20,11 @@ def serve(settings: ServiceSettings | None = None) -> None:
 
     One uvicorn process serves the event loop; CPU work happens in the service's own
     worker processes (``settings.workers``).  On shutdown uvicorn stops accepting
-    connections, lets in-flight requests finish for up to ``graceful_shutdown_s`` and
-    answers those still running then with JSON 503 + ``Retry-After``; then the lifespan
-    stops the batcher and the workers.
+    connections and lets in-flight requests finish for up to ``graceful_shutdown_s``;
+    meanwhile open connections stay open and every request read on them is answered
+    JSON 503 ``shutting_down`` with ``Connection: close``; requests still running at the
+    end of the grace period get the same 503; then the lifespan stops the batcher and
+    the workers.
     """
     import uvicorn
 
@@ -50,6 +52,7 @@ def serve(settings: ServiceSettings | None = None) -> None:
             max_connections=settings.max_connections,
             max_header_bytes=settings.max_header_bytes,
             retry_after_s=settings.retry_after_s,
+            graceful_shutdown_s=settings.graceful_shutdown_s,
         ),
         server_header=False,
     )

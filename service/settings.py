@@ -7,10 +7,11 @@ Every setting has a safe default for a single small machine; the container or th
 
 from __future__ import annotations
 
+import ipaddress
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shadowcorr.config import DEVICE_PATTERN
@@ -100,6 +101,9 @@ class ServiceSettings(BaseSettings):
 
     # --- security and logging
     auth_token: SecretStr | None = Field(None, description="when set, every route but /health needs 'Authorization: Bearer <token>'")
+    allow_no_auth: bool = Field(
+        False, description="serve without auth_token on a host that is not a loopback address; without this the "
+        "service refuses to start there, so that a server reachable from other machines is never open by mistake")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field(
         "info", description="least severe log messages the server writes: critical, error, warning, info or debug")
 
@@ -109,13 +113,34 @@ class ServiceSettings(BaseSettings):
         # SHADOWCORR_AUTH_TOKEN="" (a common way to "unset" a variable in compose files) means: no auth.
         return None if v is None or (isinstance(v, str) and v.strip() == "") else v
 
+    @model_validator(mode="after")
+    def _no_open_server_by_mistake(self) -> "ServiceSettings":
+        if self.auth_token is None and not self.allow_no_auth and not _is_loopback(self.host):
+            raise ValueError(
+                f"refusing to listen on {self.host}, which other machines can reach, without authentication: "
+                "set SHADOWCORR_AUTH_TOKEN (or pass --auth-token-file) to require a bearer token, "
+                "or set SHADOWCORR_ALLOW_NO_AUTH=1 to serve without one"
+            )
+        return self
+
     @field_validator("log_level", mode="before")
     @classmethod
     def _lower(cls, v: Any) -> Any:
         return v.lower() if isinstance(v, str) else v
 
     def public_dict(self) -> dict[str, Any]:
-        """Settings that are safe to show to any authenticated client (no secrets)."""
-        data = self.model_dump(mode="json", exclude={"auth_token"})
+        """Settings that are safe to show to any authenticated client (no secrets, no file-system paths)."""
+        # /info names the model by name, version and checksum instead of model_path.
+        data = self.model_dump(mode="json", exclude={"auth_token", "model_path"})
         data["auth"] = "bearer" if self.auth_token is not None else "none"
         return data
+
+
+def _is_loopback(host: str) -> bool:
+    """Whether ``host`` is reachable from this machine only (``localhost``, ``127.0.0.0/8``, ``::1``)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name other than localhost, or "" (every interface)
+        return False

@@ -232,13 +232,13 @@ def test_stalled_uploads_hold_no_admission_slot(server, tiny):
 
 
 def test_large_bodies_are_spooled_and_budgeted(server, spool_dir):
-    # an upload over spool_bytes goes to a temporary file while it arrives ...
+    # an upload over spool_bytes goes to a file in the server's spool directory while it arrives ...
     first = _stalled_upload(server, 30 * MiB, sent=b"\0" * (4 * SPOOL))
     try:
         deadline = time.monotonic() + 10
-        while not list(spool_dir.glob("shadowcorr-upload-*")) and time.monotonic() < deadline:
+        while not list(spool_dir.glob("shadowcorr-spool-*/shadowcorr-upload-*")) and time.monotonic() < deadline:
             time.sleep(0.05)
-        spooled = list(spool_dir.glob("shadowcorr-upload-*"))
+        spooled = list(spool_dir.glob("shadowcorr-spool-*/shadowcorr-upload-*"))
         assert spooled and spooled[0].stat().st_size >= 4 * SPOOL
         # ... and holds 30 MiB of the 48 MiB budget: a second 20 MiB upload is refused
         status, headers, body = _exchange(server, b"POST /correspond HTTP/1.1\r\nHost: x\r\nContent-Type: "
@@ -249,7 +249,7 @@ def test_large_bodies_are_spooled_and_budgeted(server, spool_dir):
         assert status == 408 and _is_error(body, "body_timeout"), body
     finally:
         first.close()
-    assert not list(spool_dir.glob("shadowcorr-upload-*"))
+    assert not list(spool_dir.glob("shadowcorr-spool-*/shadowcorr-upload-*"))
     text = httpx.get(server.url + "/metrics").text
     assert "shadowcorr_upload_bytes_in_flight 0.0" in text
 

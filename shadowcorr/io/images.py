@@ -174,6 +174,10 @@ def _open_png(data: bytes, *, shape: tuple[int, int] | None, max_pixels: int, lo
         im = Image.open(io.BytesIO(data), formats=["PNG"])  # lazy: reads the header only
     except Image.DecompressionBombError as e:
         raise _fail(loc, f"PNG refused as a decompression bomb: {e}") from None
+    except Image.UnidentifiedImageError:
+        # Pillow's message names its file object (a repr with a memory address), not the fault.
+        raise _fail(loc, "cannot read PNG header: its IHDR chunk is invalid (a bit depth, colour type or "
+                    "method no PNG has, or a wrong checksum)") from None
     except Exception as e:
         raise _fail(loc, f"cannot read PNG header: {e}") from None
     width, height = im.size
