@@ -65,6 +65,34 @@ def test_runtime_stage_is_small_safe_and_observable():
     assert label_version == shadowcorr.__version__
 
 
+def test_the_image_needs_a_token_and_compose_gives_it_one_from_an_env_file(monkeypatch):
+    import yaml
+
+    from service.settings import ServiceSettings
+
+    image_env = dict(re.findall(r"(SHADOWCORR_\w+)=(\S+)", dict(runtime_stage())["ENV"]))
+    assert image_env["SHADOWCORR_HOST"] == "0.0.0.0"  # the container serves its network
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWCORR_")}
+    proc = subprocess.run([sys.executable, "-m", "service"], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                          env={**env, **image_env, "SHADOWCORR_PORT": "0"})
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "SHADOWCORR_AUTH_TOKEN" in proc.stderr and "SHADOWCORR_ALLOW_NO_AUTH=1" in proc.stderr, proc.stderr[-2000:]
+
+    service = yaml.safe_load((ROOT / "compose.yaml").read_text())["services"]["shadowcorr"]
+    env_file = service["env_file"]
+    assert "SHADOWCORR_AUTH_TOKEN" not in service["environment"]  # the secret stays out of the compose file
+    assert re.search(r"^SHADOWCORR_AUTH_TOKEN=", (ROOT / f"{env_file}.example").read_text(), re.M)
+    for ignore in (".gitignore", ".dockerignore"):  # neither committed nor sent to a build
+        assert env_file in (ROOT / ignore).read_text().split(), ignore
+    # what the container starts with: the image's environment, compose's, and the env file's token
+    for name in [k for k in os.environ if k.startswith("SHADOWCORR_")]:
+        monkeypatch.delenv(name)
+    for name, value in {**image_env, **service["environment"], "SHADOWCORR_AUTH_TOKEN": "t0ken"}.items():
+        monkeypatch.setenv(name, str(value))
+    settings = ServiceSettings()
+    assert settings.host == "0.0.0.0" and settings.public_dict()["auth"] == "bearer"
+
+
 def test_version_is_reported_everywhere():
     out = subprocess.run([sys.executable, "-m", "shadowcorr.cli", "--version"], capture_output=True, text=True)
     assert out.stdout.strip() == f"shadowcorr {shadowcorr.__version__}"
