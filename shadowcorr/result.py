@@ -45,7 +45,7 @@ class ObjectSummary(BaseModel):
     num_voxels: int
 
 
-PoseStatus = Literal["corrected", "unchanged", "not_registered", "correction_too_large"]
+PoseStatus = Literal["corrected", "unchanged", "not_registered", "correction_too_large", "not_confirmed"]
 
 
 class ViewPoseCorrection(BaseModel):
@@ -58,7 +58,9 @@ class ViewPoseCorrection(BaseModel):
         "every pose was kept exactly; "
         "'not_registered': too little overlap, degenerate or poorly fitting surface, or inconsistent with "
         "the others - its pose is kept; 'correction_too_large': the correction exceeded the configured "
-        "bound - its pose is kept"
+        "bound - its pose is kept; 'not_confirmed': corrected, the views' masks would not agree better where "
+        "they see the same surface than with the declared poses (registration misled, e.g. by depth noise) - "
+        "every pose of its group is kept"
     )
     rotation_deg: float = Field(description="rotation of the applied correction (0 when the pose was kept)")
     translation: float = Field(description="how far the camera centre moved (0 when the pose was kept)")

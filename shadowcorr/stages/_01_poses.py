@@ -105,6 +105,9 @@ _MOVING_STRIDE = 2
 #: The fine pass's first steps move a quarter of those points, until a step moves less than this
 #: many times the final stop (moving them all then shifts the result by about a centimetre anyway).
 _QUARTER_STOP = 10.0
+#: A point projected into another view is seen there when that view's depth at the pixel is
+#: within this share of the point's own depth (not hidden behind something, not in front).
+_VISIBLE_DEPTH_SHARE = 0.03
 
 
 @dataclass
@@ -130,6 +133,8 @@ class _Cloud:
     coarse_tree: small_gicp.KdTree
     reach: float  # median distance of the surface from the camera: the lever of a rotation error
     cells: np.ndarray  # unique cell keys at the coarse match distance (overlap pre-check)
+    depth_grid: np.ndarray  # (h * w,) z-depth of the grid samples in this camera (config units, NaN where invalid)
+    foreground: np.ndarray  # (h * w,) whether the mask has an instance at the grid sample
 
 
 @dataclass
@@ -222,9 +227,10 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     # Grid index of a pixel: (pixel - first) / stride, so fold that into the intrinsics.
     projection = np.array([k.fx / stride, k.fy / stride, (k.cx - cols[0]) / stride, (k.cy - rows[0]) / stride])
     reach = float(np.median(np.sqrt(np.einsum("ij,ij->j", points - camera[:, None], points - camera[:, None]))))
+    foreground = (view.mask[np.ix_(rows, cols)] > 0).ravel() if view.mask is not None else np.zeros(depth.size, bool)
     return _Cloud(grid.reshape(3, -1), normals.reshape(3, -1), depth.shape, points, moving_normals,
                   order.size - int(rest.sum()), view.pose[:3, :3].copy(), camera[:, None], projection, coarse, coarse_tree,
-                  reach, np.zeros(0, dtype=np.int64))
+                  reach, np.zeros(0, dtype=np.int64), (depth * scale).ravel(), foreground)
 
 
 def _rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
@@ -486,6 +492,42 @@ def _correction_sizes(rotations: np.ndarray, translations: np.ndarray, offsets: 
     return np.rad2deg(_rotation_angle(rotations)), np.linalg.norm(moved, axis=1)
 
 
+def _mask_agreement(clouds: list[_Cloud | None], pairs: list[tuple[int, int]], rotations: np.ndarray,
+                    translations: np.ndarray) -> tuple[int, int]:
+    """How well the views' masks agree where the views see the same surface, with each view
+    moved by its correction (``rotations``/``translations``, centred frame).
+
+    Every other grid sample (per axis) of one view of a pair is projected into the other
+    camera; where that camera sees it (its depth there within ``_VISIBLE_DEPTH_SHARE``), the
+    two masks should both say "rock" or both "not rock".  Returns (samples where both say
+    rock, samples where exactly one does), both directions of every pair added up.  The
+    masks are the one input the registration does not use, so they can confirm it.
+    """
+    both = one = 0
+    for a, b in pairs:
+        for source, target, s, t in ((clouds[a], clouds[b], a, b), (clouds[b], clouds[a], b, a)):
+            h, w = source.shape
+            take = (np.arange(h)[:, None] % 2 == 0) & (np.arange(w)[None, :] % 2 == 0)
+            take = take.ravel() & np.isfinite(source.grid[0])
+            points = rotations[s] @ source.grid[:, take] + translations[s][:, None]
+            # Into the corrected target camera: (R_t rot)^T (p - (R_t c + t_t)).
+            to_camera = (rotations[t] @ target.rotation).T
+            local = to_camera @ (points - (rotations[t] @ target.camera + translations[t][:, None]))
+            fx, fy, cx, cy = target.projection
+            with np.errstate(invalid="ignore", divide="ignore"):
+                col = np.rint(fx * local[0] / local[2] + cx)
+                row = np.rint(fy * local[1] / local[2] + cy)
+            inside = np.flatnonzero((local[2] > 0) & (col >= 0) & (col < target.shape[1]) & (row >= 0)
+                                    & (row < target.shape[0]))
+            flat = (row[inside] * target.shape[1] + col[inside]).astype(np.int64)
+            with np.errstate(invalid="ignore"):
+                seen = np.abs(target.depth_grid[flat] - local[2, inside]) < _VISIBLE_DEPTH_SHARE * local[2, inside]
+            mine, theirs = source.foreground[take][inside][seen], target.foreground[flat][seen]
+            both += int(np.count_nonzero(mine & theirs))
+            one += int(np.count_nonzero(mine != theirs))
+    return both, one
+
+
 def _groups(n: int, edges: list[_Pair]) -> np.ndarray:
     """Connected group label of every view in the graph of ``edges`` (a view without edges is its own group)."""
     src = [e.source for e in edges]
@@ -526,7 +568,8 @@ def refine_poses(
 
     why: dict[int, str] = {}
     edges: list[_Pair] = []
-    for i, j in _candidate_pairs(clouds, config.pose_min_overlap):
+    candidates = _candidate_pairs(clouds, config.pose_min_overlap)
+    for i, j in candidates:
         pair, reason = _register(clouds[i], clouds[j], config)
         if pair is None:
             why.setdefault(i, f"registration with {bundle.views[j].name}: {reason}")
@@ -584,6 +627,28 @@ def refine_poses(
                 why[k] = (f"the declared pose agrees with its neighbours to within {degrees[k]:.3f} deg and "
                           f"{surface_shifts[k] / scale:.3g} {bundle.units} on its surface (under "
                           "pose_min_rotation_deg / pose_min_translation); kept")
+    # A correction must be confirmed by what registration did not use: the masks.  Under depth
+    # noise (or a surface that fits two ways) registration converges to a wrong motion and calls
+    # it consistent; moved by such a correction, the views' masks agree less where they see the
+    # same surface, not more.  A group whose corrections do not make its views' masks agree
+    # better keeps every declared pose.
+    declared_r, declared_t = np.broadcast_to(np.eye(3), (n, 3, 3)), np.zeros((n, 3))
+    for g in np.unique(group[in_graph]):
+        members = [k for k in np.flatnonzero(group == g) if status[k] == "corrected"]
+        pairs = [(i, j) for i, j in candidates if i in members or j in members]
+        if not members or not pairs:
+            continue
+        moved_r, moved_t = declared_r.copy(), declared_t.copy()
+        moved_r[members], moved_t[members] = rotations[members], translations[members]
+        before = _mask_agreement(clouds, pairs, declared_r, declared_t)
+        after = _mask_agreement(clouds, pairs, moved_r, moved_t)
+        share_before, share_after = (b / max(b + o, 1) for b, o in (before, after))
+        if share_after <= share_before:
+            for k in members:
+                status[k] = "not_confirmed"
+                why[k] = (f"corrected, the views' masks would not agree better where they see the same surface "
+                          f"({share_after:.3f} against {share_before:.3f} with the declared poses): the "
+                          "registration is not borne out by the scene; pose kept")
     incident: list[list[_Pair]] = [[] for _ in range(n)]
     worst_miss = np.zeros(n)
     for e, m in zip(edges, _disagreements(edges, rotations, translations)):
