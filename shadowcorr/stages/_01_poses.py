@@ -105,6 +105,14 @@ _MOVING_STRIDE = 2
 #: The fine pass's first steps move a quarter of those points, until a step moves less than this
 #: many times the final stop (moving them all then shifts the result by about a centimetre anyway).
 _QUARTER_STOP = 10.0
+#: Under measured depth noise sigma (both surfaces together), fine matches reach this many sigma
+#: and a registration may fit this many sigma (RMS) before it is refused.
+_NOISE_MATCH = 3.0
+_NOISE_RESIDUAL = 1.5
+#: Normals span enough samples that depth noise tilts them by at most this much (radians),
+#: but no more than this many samples either way (a wider reach loses detail and edge points).
+_MAX_NORMAL_TILT = 0.1
+_MAX_NORMAL_REACH = 6
 #: A point projected into another view is seen there when that view's depth at the pixel is
 #: within this share of the point's own depth (not hidden behind something, not in front).
 _VISIBLE_DEPTH_SHARE = 0.03
@@ -134,6 +142,7 @@ class _Cloud:
     reach: float  # median distance of the surface from the camera: the lever of a rotation error
     cells: np.ndarray  # unique cell keys at the coarse match distance (overlap pre-check)
     depth_grid: np.ndarray  # (h * w,) z-depth of the grid samples in this camera (config units, NaN where invalid)
+    noise: float  # the depth noise's standard deviation at the median depth, measured (config units)
     foreground: np.ndarray  # (h * w,) whether the mask has an instance at the grid sample
 
 
@@ -164,25 +173,53 @@ def _view_grid(view: View, max_depth_bundle: float) -> tuple[np.ndarray, np.ndar
     return np.ascontiguousarray(grid.transpose(1, 0, 2)), depth, rows, cols, stride
 
 
-def _grid_normals(grid: np.ndarray, depth: np.ndarray, camera: np.ndarray, spacing_per_depth: float) -> np.ndarray:
+def _grid_normals(grid: np.ndarray, depth: np.ndarray, camera: np.ndarray, spacing_per_depth: float,
+                  reach: int = 1) -> np.ndarray:
     """(3, h, w) unit normals (facing the camera) of a (3, h, w) point grid from its central
-    differences; NaN at the border, next to invalid depth and across depth edges (neighbours
-    further apart than ``_EDGE_RATIO`` sample spacings, ``spacing_per_depth`` x depth)."""
-    along = grid[:, 1:-1, 2:] - grid[:, 1:-1, :-2]
-    down = grid[:, 2:, 1:-1] - grid[:, :-2, 1:-1]
-    limit = (2.0 * _EDGE_RATIO * spacing_per_depth * depth[1:-1, 1:-1]) ** 2
+    differences ``reach`` samples either way; NaN within ``reach`` of the border, next to invalid
+    depth and across depth edges (neighbours further apart than ``_EDGE_RATIO`` sample spacings,
+    ``spacing_per_depth`` x depth, per sample of reach)."""
+    k = reach
+    inner = (slice(None), slice(k, -k), slice(k, -k))
+    along = grid[:, k:-k, 2 * k:] - grid[:, k:-k, :-2 * k]
+    down = grid[:, 2 * k:, k:-k] - grid[:, :-2 * k, k:-k]
+    limit = (2.0 * k * _EDGE_RATIO * spacing_per_depth * depth[k:-k, k:-k]) ** 2
     cross = np.stack([along[1] * down[2] - along[2] * down[1],
                       along[2] * down[0] - along[0] * down[2],
                       along[0] * down[1] - along[1] * down[0]])
-    facing = np.einsum("i...,i...->...", camera[:, None, None] - grid[:, 1:-1, 1:-1], cross)
+    facing = np.einsum("i...,i...->...", camera[:, None, None] - grid[inner], cross)
     length = np.sqrt(np.einsum("i...,i...->...", cross, cross))
     with np.errstate(invalid="ignore", divide="ignore"):
         ok = (np.einsum("i...,i...->...", along, along) < limit) & (np.einsum("i...,i...->...", down, down) < limit) \
             & (length > 0)
         scale = np.where(ok, np.sign(facing) / length, np.nan)
     normals = np.full(grid.shape, np.nan)
-    normals[:, 1:-1, 1:-1] = cross * scale
+    normals[inner] = cross * scale
     return normals
+
+
+def _relative_depth_noise(depth: np.ndarray) -> float:
+    """The depth noise of a view as ``a`` in ``sigma(z) = a z^2`` (the growth of stereo and ToF
+    noise), estimated from the data: along each grid row a smooth surface's second difference
+    is nearly zero, while independent noise gives it a standard deviation of sqrt(6) sigma.
+    The median absolute value (robust to the depth edges in between) of ``d2 / z^2`` gives
+    ``a``; 0 when the grid has too few valid triples."""
+    d2 = depth[:, :-2] - 2.0 * depth[:, 1:-1] + depth[:, 2:]
+    with np.errstate(invalid="ignore"):
+        ratio = np.abs(d2) / depth[:, 1:-1] ** 2
+    ratio = ratio[np.isfinite(ratio)]
+    return float(1.4826 * np.median(ratio) / np.sqrt(6.0)) if ratio.size >= 100 else 0.0
+
+
+def _normal_reach(depth: np.ndarray, relative_noise: float, spacing_per_depth: float) -> int:
+    """How many samples either way a normal is taken over, so that the depth noise tilts it by
+    about a tenth of a radian at most (at the median depth): the difference of two samples
+    ``2 reach`` apart carries sqrt(2) sigma of noise across ``2 reach`` sample spacings."""
+    z = float(np.nanmedian(depth)) if np.isfinite(depth).any() else 0.0
+    if z <= 0:
+        return 1
+    noise_per_spacing = relative_noise * z / spacing_per_depth  # sigma / spacing at depth z
+    return int(np.clip(np.ceil(np.sqrt(2.0) * noise_per_spacing / (2.0 * _MAX_NORMAL_TILT)), 1, _MAX_NORMAL_REACH))
 
 
 def _cell_keys(points: np.ndarray, cell: float) -> np.ndarray:
@@ -203,7 +240,12 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     grid = grid * scale - centre[:, None, None]
     camera = view.camera_center * scale - centre
     k = view.intrinsics
-    normals = _grid_normals(grid, depth * scale, camera, stride / max(k.fx, k.fy))
+    spacing_per_depth = stride / max(k.fx, k.fy)
+    # Under depth noise, neighbouring samples' differences are mostly noise: normals span as many
+    # samples as the view's measured noise needs (one either way on clean depth).
+    relative_noise = _relative_depth_noise(depth)
+    normals = _grid_normals(grid, depth * scale, camera, spacing_per_depth,
+                            _normal_reach(depth, relative_noise, spacing_per_depth))
     # Moving points: every _MOVING_STRIDE-th grid point with a normal, those of twice the stride first.
     step = _MOVING_STRIDE
     index = np.arange(depth.size).reshape(depth.shape)[::step, ::step]
@@ -230,7 +272,8 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     foreground = (view.mask[np.ix_(rows, cols)] > 0).ravel() if view.mask is not None else np.zeros(depth.size, bool)
     return _Cloud(grid.reshape(3, -1), normals.reshape(3, -1), depth.shape, points, moving_normals,
                   order.size - int(rest.sum()), view.pose[:3, :3].copy(), camera[:, None], projection, coarse, coarse_tree,
-                  reach, np.zeros(0, dtype=np.int64), (depth * scale).ravel(), foreground)
+                  reach, np.zeros(0, dtype=np.int64), (depth * scale).ravel(),
+                  relative_noise * float(np.nanmedian(depth)) ** 2 * scale, foreground)
 
 
 def _rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
@@ -344,7 +387,11 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig) -> tuple
                               max_correspondence_distance=coarse, num_threads=1, max_iterations=_COARSE_ITERATIONS,
                               rotation_epsilon=np.deg2rad(_COARSE_STOP_DEG),
                               translation_epsilon=_COARSE_STOP_SPACING * spacing)
-    fine = _FINE_MATCH * spacing
+    # The two surfaces' measured depth noise sets how far apart matched points may lie and how
+    # well they can fit: matches cut off inside the noise would bias the fit, and a residual
+    # the noise alone explains says nothing against the registration.
+    noise = float(np.hypot(source.noise, target.noise))
+    fine = max(_FINE_MATCH * spacing, _NOISE_MATCH * noise)
     transform, moved, matched, normals = _point_to_plane(source, target, np.asarray(result.T_target_source),
                                                          fine, _FINE_STOP_SPACING * spacing)
     overlap = moved.shape[1] / source.points.shape[1]
@@ -352,8 +399,9 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig) -> tuple
         return None, f"overlap {overlap:.2f} < {config.pose_min_overlap}"
     offset = np.einsum("ij,ij->j", moved - matched, normals)
     residual = float(np.sqrt(np.mean(offset**2)))
-    if residual > config.pose_max_residual:
-        return None, f"residual {residual:.3g} > {config.pose_max_residual} {config.units}"
+    max_residual = max(config.pose_max_residual, _NOISE_RESIDUAL * noise)
+    if residual > max_residual:
+        return None, f"residual {residual:.3g} > {max_residual:.3g} {config.units}"
     matched, normals = matched.T, normals.T
     centre = matched.mean(axis=0)
     extent = max(float(np.sqrt(np.mean(np.sum((matched - centre) ** 2, axis=1)))), spacing)
