@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 from typing import TYPE_CHECKING, Any
 
@@ -64,7 +65,8 @@ def options_from_args(args: argparse.Namespace) -> "BatchOptions":
 
 
 def run_batch_command(args: argparse.Namespace) -> int:
-    """Entry point of ``shadowcorr batch``; returns the exit status (1 if a scene failed, 130 if interrupted)."""
+    """Entry point of ``shadowcorr batch``; returns the exit status (1 if a scene failed, 130 if interrupted by
+    Ctrl-C, 143 if stopped by SIGTERM)."""
     from clients.records import format_summary
     from tqdm import tqdm
 
@@ -96,15 +98,35 @@ def run_batch_command(args: argparse.Namespace) -> int:
             bar.write(f"failed {record.scene}: {(record.error or {}).get('message')}", file=sys.stderr)
         bar.update(1)
 
+    terminated = False
+
+    def on_sigterm(signum: int, frame: object) -> None:
+        # SIGTERM (kill, systemd, a scheduler) stops the run as Ctrl-C does: the engine
+        # shuts down and ends its workers, the lines written stay.  Python's default ends
+        # the process at once, with no summary and no shutdown of the engine.
+        nonlocal terminated
+        terminated = True
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not cut that shutdown short
+        raise KeyboardInterrupt
+
+    previous_sigterm = signal.signal(signal.SIGTERM, on_sigterm)
+    resume = f"finished scenes are in {args.out}; run the same command again to resume"
     try:
         run = run_batch(args.input, args.out, options, on_start=on_start, on_record=on_record)
+    except KeyboardInterrupt:
+        if not terminated:
+            raise
+        # SIGTERM outside the run's own interrupt handling (while finding the scenes): no engine to stop.
+        print(f"terminated (SIGTERM): {resume}", file=sys.stderr)
+        return 128 + signal.SIGTERM
     finally:
+        signal.signal(signal.SIGTERM, previous_sigterm)
         if bar is not None:
             bar.close()
     assert run.summary is not None
     print(format_summary(run.summary))
     print_failures(run)
     if run.interrupted:
-        print(f"interrupted: finished scenes are in {args.out}; run the same command again to resume", file=sys.stderr)
-        return 130
+        print(f"{'terminated (SIGTERM)' if terminated else 'interrupted'}: {resume}", file=sys.stderr)
+        return 128 + signal.SIGTERM if terminated else 130
     return 1 if run.summary.failed else 0

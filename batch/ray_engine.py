@@ -48,10 +48,12 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 from typing import TYPE_CHECKING, Any, Iterator, Literal, Sequence
 
 import numpy as np
 
+from .ray_watchdog import start_watchdog, stop_watchdog
 from .stages import SceneTask, embed_tasks, finish_task, prepare_task, process_model, run_scenes, single_thread_numerics
 
 if TYPE_CHECKING:
@@ -150,11 +152,12 @@ def run_ray(
     """Run every task on Ray Data; yield each record as soon as its scene is done.
 
     Without ``address`` a local Ray instance is started with ``workers`` CPUs (and shut
-    down at the end); with one (``auto``, ``ray://host:10001``, ``host:6379``) the run
-    joins that cluster, whose nodes need shadowcorr installed.  ``plan`` picks the
-    pipeline (module docstring).  With ``staged``, ``actors`` network actors hold the
-    model, each taking up to ``batch_size`` prepared scenes per forward pass, with one GPU
-    each when ``device`` is ``cuda``; methods without a network always run ``fused``.
+    down at the end, or by :mod:`batch.ray_watchdog` if this process dies first); with
+    one (``auto``, ``ray://host:10001``, ``host:6379``) the run joins that cluster, whose
+    nodes need shadowcorr installed.  ``plan`` picks the pipeline (module docstring).
+    With ``staged``, ``actors`` network actors hold the model, each taking up to
+    ``batch_size`` prepared scenes per forward pass, with one GPU each when ``device`` is
+    ``cuda``; methods without a network always run ``fused``.
     """
     from clients.records import UploadRecord
 
@@ -166,14 +169,20 @@ def run_ray(
     if not tasks:
         return
     ray = import_ray()
-    started_here = False
-    if not ray.is_initialized():
-        if address:
-            ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
-        else:
-            ray.init(num_cpus=workers, include_dashboard=False, logging_level=logging.WARNING, log_to_driver=False)
-        started_here = True
+    started_here = not ray.is_initialized()
+    watchdog = None
     try:
+        if started_here:
+            sigterm = signal.getsignal(signal.SIGTERM)
+            if address:
+                ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
+            else:
+                watchdog = start_watchdog()  # the instance's agents outlive a killed driver (see the module)
+                ray.init(num_cpus=workers, include_dashboard=False, logging_level=logging.WARNING, log_to_driver=False)
+            # ray.init replaces the program's SIGTERM handler with a bare sys.exit(15): keep the
+            # program's own (the CLI's stops the run like Ctrl-C, with its own message and status).
+            if sigterm is not None and signal.getsignal(signal.SIGTERM) is not sigterm:
+                signal.signal(signal.SIGTERM, sigterm)
         context = ray.data.DataContext.get_current()
         context.enable_progress_bars = False  # the runner draws its own bar, counting finished scenes
         context.print_on_execution_start = False
@@ -208,3 +217,5 @@ def run_ray(
     finally:
         if started_here:
             ray.shutdown()
+        if watchdog is not None:
+            stop_watchdog(watchdog)
