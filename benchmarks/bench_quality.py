@@ -60,8 +60,11 @@ SYNTH_SEED = 9001
 #: Mixed into every perturbation seed, so perturbations never reuse a generator stream.
 PERTURB_SEED = 77
 DEFAULT_METHODS = ("shadowcorr", "meanshift", "projection", "fused")
-#: Flag threshold for the support -> "is this segment wrong?" precision/recall columns.
+#: Flag threshold for the support -> "is this segment wrong?" precision/recall columns, for the
+#: methods whose support is a vote share; ``fused`` uses its calibration's own threshold.
 SUPPORT_FLAG = 0.6
+#: Equal-width bins of the reliability table (expected calibration error of the support).
+SUPPORT_BINS = 10
 
 # ---------------------------------------------------------------- conditions
 #: Synthetic rigs: SynthConfig fields over the defaults (4 cameras 90 degrees apart, 329 cm high,
@@ -328,13 +331,41 @@ def wrong_segments(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
     return wrong
 
 
-def support_flag_scores(bundle: Any, result: Any) -> dict[str, float | int]:
-    """How well ``support < SUPPORT_FLAG`` finds the wrong segments: counts for precision and recall."""
+def support_threshold(method: str) -> float:
+    """Below which support a segment is flagged as worth checking."""
+    if method.partition("(")[0].strip() == "fused":
+        from shadowcorr.stages import support_calibration
+
+        return support_calibration().check_below
+    return SUPPORT_FLAG
+
+
+def support_flag_scores(bundle: Any, result: Any, method: str) -> dict[str, Any]:
+    """How well ``support < support_threshold(method)`` finds the wrong segments (counts for precision
+    and recall), and per support bin the segments, their summed support and how many sit right
+    (for the expected calibration error)."""
     truth = segment_truth(bundle, result)
     wrong = wrong_segments(truth, np.array(result.labels, dtype=np.int64))
-    flagged = np.array([s.support < SUPPORT_FLAG for s in result.segments], dtype=bool) & (truth >= 0)
+    support = np.array([s.support for s in result.segments], dtype=np.float64)
+    scored = truth >= 0
+    flagged = (support < support_threshold(method)) & scored
+    which = np.minimum((support * SUPPORT_BINS).astype(int), SUPPORT_BINS - 1)[scored]
+    bins = [np.bincount(which, minlength=SUPPORT_BINS).tolist(),
+            np.bincount(which, weights=support[scored], minlength=SUPPORT_BINS).tolist(),
+            np.bincount(which, weights=(~wrong[scored]).astype(float), minlength=SUPPORT_BINS).tolist()]
     return {"wrong_segments": int(wrong.sum()), "flagged_segments": int(flagged.sum()),
-            "flagged_wrong": int((flagged & wrong).sum())}
+            "flagged_wrong": int((flagged & wrong).sum()), "support_bins": bins}
+
+
+def calibration_error(bins: Sequence[Sequence[Sequence[float]]]) -> float:
+    """Expected calibration error of the support over runs' ``support_bins``: the segments' share
+    in each bin times |share sitting right - mean support| there, summed."""
+    count, total, right = (np.sum([b[i] for b in bins], axis=0) for i in range(3))
+    n = count.sum()
+    if n == 0:
+        return math.nan
+    used = count > 0
+    return float(np.sum(count[used] / n * np.abs(right[used] / count[used] - total[used] / count[used])))
 
 
 _MODEL = None
@@ -380,7 +411,7 @@ def run_task(task: Task) -> Task:
                 continue
             wall, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
             task.records.append({
-                **base, **(result.metrics or {}), **support_flag_scores(bundle, result),
+                **base, **(result.metrics or {}), **support_flag_scores(bundle, result, method),
                 "time_ms": result.timings_ms.get("total", wall), "wall_ms": wall, "cpu_ms": cpu,
             })
     return task
@@ -462,6 +493,10 @@ def summarize_cells(records: list[dict[str, Any]]) -> dict[str, dict[str, dict[s
             hit = sum(r["flagged_wrong"] for r in ok)
             stats["flag_precision"] = 100.0 * hit / flagged if flagged else math.nan
             stats["flag_recall"] = 100.0 * hit / wrong if wrong else math.nan
+            stats["flag_counts"] = {"flagged": flagged, "hit": hit, "wrong": wrong}
+            bins = [r["support_bins"] for r in ok if "support_bins" in r]
+            stats["support_bins"] = np.sum(bins, axis=0).tolist() if bins else None
+            stats["support_ece"] = calibration_error(bins)
             stats["errors"] = len(recs) - len(ok)
             stats["runs"] = len(recs)
             out.setdefault(cond, {})[method] = stats
@@ -494,15 +529,42 @@ def render_tables(summary: dict[str, dict[str, dict[str, Any]]], conditions: lis
             n = max((cells[m]["runs"] for m in methods if m in cells), default=0)
             lines.append(f"| {c.name} | {n} | " + " | ".join(format_cell(cells.get(m), key, fmt) for m in methods) + " |")
         lines.append("")
-    lines += [f"### support < {SUPPORT_FLAG} as a flag for wrong segments: precision / recall (%)", "",
+    thresholds = ", ".join(f"{m} {support_threshold(m):.3g}" for m in methods)
+    lines += [f"### support as a flag for wrong segments (support below: {thresholds}): precision / recall (%), "
+              "and the support's expected calibration error", "",
               "| condition | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
     for c in rows:
         cells = summary[c.name]
-        flag = [f"{cells[m]['flag_precision']:.0f} / {cells[m]['flag_recall']:.0f}" if m in cells else "–" for m in methods]
+        flag = [f"{cells[m]['flag_precision']:.0f} / {cells[m]['flag_recall']:.0f}, ECE {cells[m]['support_ece']:.3f}"
+                if m in cells else "–" for m in methods]
         lines.append(f"| {c.name} | " + " | ".join(flag).replace("nan", "–") + " |")
+    lines += pooled_flag_table(summary, rows, methods)
     lines += compounding_table(summary, rows, methods)
     lines += ["", "Conditions:", ""] + [f"- `{c.name}`: {c.description}" for c in rows]
     return "\n".join(lines) + "\n"
+
+
+def pooled_flag_table(summary: dict[str, dict[str, dict[str, Any]]], rows: list[Condition], methods: list[str]
+                      ) -> list[str]:
+    """Markdown lines: the flag's precision / recall and the support's calibration error pooled over
+    the clean rows, the single-error rows and the combined-error rows."""
+    kinds = (("clean", lambda c: c.perturbation is None), ("single errors", lambda c: c.perturbation in PERTURBATIONS),
+             ("combined errors", lambda c: c.perturbation in COMBINED))
+    lines = ["", "| pooled rows | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for label, wanted in kinds:
+        cells = []
+        for m in methods:
+            stats = [summary[c.name][m] for c in rows if wanted(c) and m in summary[c.name]]
+            if not stats:
+                cells.append("–")
+                continue
+            flagged, hit, wrong = (sum(s["flag_counts"][k] for s in stats) for k in ("flagged", "hit", "wrong"))
+            precision = 100.0 * hit / flagged if flagged else math.nan
+            recall = 100.0 * hit / wrong if wrong else math.nan
+            ece = calibration_error([s["support_bins"] for s in stats if s["support_bins"] is not None])
+            cells.append(f"{precision:.0f} / {recall:.0f}, ECE {ece:.3f}".replace("nan", "–"))
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def compounding(summary: dict[str, dict[str, dict[str, Any]]], condition: Condition, method: str

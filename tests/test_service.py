@@ -428,10 +428,22 @@ def test_bad_inputs_get_4xx_naming_the_problem(client, server, synthetic):
 
 
 # --------------------------------------------------------------------------- failures
-def test_killed_worker_fails_its_request_and_is_replaced(client, server, sample, synthetic):
-    path, *_ = sample
+@pytest.fixture(scope="module")
+def all_cameras(tmp_path_factory):
+    """The real sample scene with all 8 cameras (the most this server takes): a request that keeps
+    a worker busy for about a second of CPU, long enough to be caught at it."""
+    if not SAMPLE_DIR.is_dir():
+        pytest.skip(f"sample data not found at {SAMPLE_DIR}")
+    from shadowcorr.convert.ue import load_ue_scene
+    from shadowcorr.io import write_bundle_archive
+
+    return write_bundle_archive(load_ue_scene(SAMPLE_DIR, 2001, range(8)),
+                                tmp_path_factory.mktemp("all_cameras") / "scene.zip")
+
+
+def test_killed_worker_fails_its_request_and_is_replaced(client, server, all_cameras, synthetic):
     zipped, _, _, labels = synthetic
-    t, result = _post_in_background(server, path)
+    t, result = _post_in_background(server, all_cameras)
     victim = _worker_busy(server)
     victim.send_signal(signal.SIGKILL)
     t.join(180)

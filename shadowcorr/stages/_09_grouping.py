@@ -261,18 +261,24 @@ def _initial_heap(graph: SegmentGraph, groups: _Groups, config: ShadowCorrConfig
     return [(-value, a, b, 0, 0) for value, a, b in zip(link.tolist(), g.tolist(), h.tolist())]
 
 
-def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
-    """How sure each segment's group is, in (0, 1).
+@dataclass
+class _GroupLinks:
+    """Per segment, its linkage to its own group and to the best other one (see :func:`segment_confidence`)."""
 
-    For every segment the linkage (as between groups) of the segment alone to the rest of its
-    own group, and to every other group it has evidence with, is computed.  The margin of its
-    own group over the best alternative - another group, or standing alone (linkage 0) - goes
-    through a logistic of slope ``fusion_confidence_slope``: 0.5 means no evidence either way.
-    Vectorised over (segment, group) pairs that have evidence.
-    """
+    own_link: np.ndarray  # (S,) linkage of the segment alone to the rest of its group (0 when alone)
+    best_other: np.ndarray  # (S,) the highest linkage to another group (-inf: no evidence with any)
+    alone: np.ndarray  # (S,) bool: its group holds only the segment
+    margin: np.ndarray  # (S,) own group over the best alternative (another group, or standing alone)
+    group_views: np.ndarray  # (S,) other views holding a member of its group
+    own_hits: np.ndarray  # (S,) its sample points landing on its group's segments
+    own_trials: np.ndarray  # (S,) its points visible in its group's views and landing on some segment there
+
+
+def _group_links(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> _GroupLinks:
+    """For every segment, the linkage (as between groups) of the segment alone to the rest of
+    its own group, and to every other group it has evidence with.  Vectorised over (segment,
+    group) pairs that have evidence."""
     s = graph.num_segments
-    if s == 0:
-        return np.zeros(0)
     _, group = np.unique(labels, return_inverse=True)
     k, num_views = int(group.max()) + 1, graph.surface.on_mask.shape[1]
     surf = graph.surface
@@ -321,7 +327,24 @@ def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCo
     alone = np.bincount(group, minlength=k)[group] == 1
     margin = np.where(alone, np.where(np.isfinite(best_other), -best_other, 0.0),
                       own_link - np.maximum(best_other, 0.0))
-    return 1.0 / (1.0 + np.exp(-config.fusion_confidence_slope * margin))
+    own_hits, own_trials = np.zeros(s), np.zeros(s)
+    own_hits[seg[own]], own_trials[seg[own]] = hits_out[own], trials_out[own]
+    group_views = (per_view[group] > 0).sum(axis=1) - (per_view[group, graph.view] == 1)
+    return _GroupLinks(own_link, best_other, alone, margin, group_views, own_hits, own_trials)
+
+
+def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
+    """How sure each segment's group is, in (0, 1), from the evidence margin alone.
+
+    The margin of a segment's own group over the best alternative - another group, or standing
+    alone (linkage 0) - goes through a logistic of slope ``fusion_confidence_slope``: 0.5 means
+    no evidence either way.  (``fused`` calibrates its support instead: ``_09_support``.)
+    """
+    if graph.num_segments == 0:
+        return np.zeros(0)
+    return 1.0 / (1.0 + np.exp(-config.fusion_confidence_slope * _group_links(graph, labels, config).margin))
+
+
 
 
 def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndarray, config: ShadowCorrConfig
@@ -485,11 +508,25 @@ def without_landings_on(surface: SurfaceEvidence, view: np.ndarray, drop: np.nda
 
 def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: ShadowCorrConfig
                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Group label and confidence of every segment from the evidence between segments.
+    """Group label and support of every segment from the evidence between segments.
 
-    ``projection`` links segments by cross-view landings alone; ``fused`` adds the network's
-    volumetric evidence (``embeddings``) and resolves both by signed average linkage.
+    ``projection`` links segments by cross-view landings alone (support: the margin's logistic,
+    :func:`segment_confidence`); ``fused`` adds the network's volumetric evidence
+    (``embeddings``), resolves both by signed average linkage, and its support is the calibrated
+    probability that the segment sits with its own object (``_09_support``).
     """
+    from ._09_support import segment_support, support_features
+
+    labels, graph, merged = evidence_graph_groups(scene, embeddings, config)
+    if config.method == "fused":
+        return labels, segment_support(support_features(graph, labels, merged, config))
+    return labels, segment_confidence(graph, labels, config)
+
+
+def evidence_graph_groups(scene: VoxelScene, embeddings: np.ndarray | None, config: ShadowCorrConfig
+                          ) -> tuple[np.ndarray, SegmentGraph, np.ndarray]:
+    """The group label of every segment, the evidence graph it was read from and which segments
+    were read as merged masks (see :func:`group_by_evidence`)."""
     if scene.surface is None:
         raise ValueError(f"method {config.method!r} needs a scene prepared with method {config.method!r} "
                          "(its cross-view surface evidence is missing)")
@@ -509,7 +546,7 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
         labels = link_components(scene.surface, scene.segment_view, config)
     else:
         labels = join_nearest_surface(agglomerate(graph, config), surface, scene.segment_view, merged, config)
-    return labels[:s], segment_confidence(graph, labels, config)
+    return labels[:s], graph, merged
 
 
 def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.ndarray, segments: np.ndarray,

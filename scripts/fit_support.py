@@ -1,0 +1,177 @@
+"""Fit the calibrated support of ``fused`` (``shadowcorr/models/support.json``).
+
+    python scripts/fit_support.py                 # generate, run, fit, write the model file
+    python scripts/fit_support.py --out /tmp/support.json --scenes 6
+
+Generated scenes (dataset seed 5005: neither the shipped network's training seeds nor the
+quality benchmark's 9001) on five rigs are labelled by ``fused`` clean, under single errors and
+under the combined errors of the quality benchmark.  For every segment with ground truth the
+features of :data:`shadowcorr.stages.SUPPORT_FEATURES` and whether it sits in the wrong place
+(the benchmark's ``wrong_segments``) are recorded; a logistic regression (scikit-learn,
+standardised features) is fitted on two thirds of the scenes and checked on the rest: expected
+calibration error (10 bins), AUROC and the precision / recall of "support below the threshold"
+as a flag for wrong segments.  The threshold is the highest support at which the flag still
+has ``--precision`` on the fitted scenes.  Per-run features are cached in ``--work``, so a
+rerun only fits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import multiprocessing as mp
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SEED = 5005
+RIGS = ("syn:4v", "syn:3v-arc90", "syn:8v", "syn:4v-low", "syn:6v-uneven")
+CONDITIONS = (None, "split20%", "merge10%", "erode5", "drop10%", "depth2%", "rot2", "mild", "field", "harsh")
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bench_quality", REPO / "benchmarks" / "bench_quality.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+_MODEL = None
+
+
+def _init() -> None:
+    global _MODEL
+    import torch
+
+    import shadowcorr
+
+    torch.set_num_threads(1)
+    _MODEL = shadowcorr.load_model()
+
+
+def _run(job: tuple[str, str, int, str | None]) -> tuple[str, np.ndarray, np.ndarray]:
+    """Features and wrongness of every scored segment of one (scene, condition)."""
+    from shadowcorr import ShadowCorrConfig, load_bundle, prepare
+    from shadowcorr.stages import embed, evidence_graph_groups, support_features
+
+    bench = _bench()
+    key, path, index, condition = job
+    bundle = load_bundle(path)
+    if condition is not None:
+        bundle = bench.perturb(bundle, condition, bench.perturbation_seed(f"fit/{path}", condition, 0))
+    config = ShadowCorrConfig()
+    scene = prepare(bundle, config)
+    (embeddings,) = embed(_MODEL, [scene])
+    labels, graph, merged = evidence_graph_groups(scene, embeddings, config)
+    features = support_features(graph, labels, merged, config)
+    truth = scene.segment_truth  # the bundle's ground truth per segment, read here only to score
+    wrong = bench.wrong_segments(truth, labels)
+    scored = truth >= 0
+    return key, features[scored], wrong[scored]
+
+
+def expected_calibration_error(p_correct: np.ndarray, correct: np.ndarray, bins: int = 10) -> float:
+    """Sum over equal-width bins of the bin's share times |accuracy - mean predicted probability|."""
+    which = np.minimum((p_correct * bins).astype(int), bins - 1)
+    total = 0.0
+    for b in range(bins):
+        inside = which == b
+        if inside.any():
+            total += inside.mean() * abs(correct[inside].mean() - p_correct[inside].mean())
+    return float(total)
+
+
+def flag_scores(support: np.ndarray, wrong: np.ndarray, below: float) -> tuple[float, float]:
+    flagged = support < below
+    hit = int((flagged & wrong).sum())
+    return hit / max(int(flagged.sum()), 1), hit / max(int(wrong.sum()), 1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scenes", type=int, default=12, help="generated scenes per rig")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--precision", type=float, default=0.5, help="the flag's precision the threshold keeps")
+    p.add_argument("--work", default=str(REPO / "out" / "fit_support"), help="scene cache and per-run features")
+    p.add_argument("--out", default=str(REPO / "shadowcorr" / "models" / "support.json"))
+    args = p.parse_args(argv)
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.metrics import roc_auc_score
+
+    from shadowcorr.stages import SUPPORT_FEATURES, SupportCalibration
+
+    bench = _bench()
+    work = Path(args.work)
+    runs_path = work / "runs.npz"
+    done: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    if runs_path.exists():
+        with np.load(runs_path) as z:
+            for key in {k.rsplit("|", 1)[0] for k in z.files}:
+                done[key] = (z[key + "|features"], z[key + "|wrong"])
+    jobs = []
+    for rig in RIGS:
+        paths = bench.ensure_scenes(work / "scenes", rig, bench.synth_config(rig, {}), args.scenes, SEED, args.workers)
+        for index, path in enumerate(paths):
+            for condition in CONDITIONS:
+                key = f"{rig}/{index}/{condition or 'clean'}"
+                if key not in done:
+                    jobs.append((key, str(path), index, condition))
+    t0 = time.perf_counter()
+    print(f"{len(jobs)} runs to do, {len(done)} cached", flush=True)
+    if jobs:
+        with mp.get_context("spawn").Pool(args.workers, initializer=_init) as pool:
+            for n, (key, features, wrong) in enumerate(pool.imap_unordered(_run, jobs), 1):
+                done[key] = (features, wrong)
+                if n % 50 == 0 or n == len(jobs):
+                    print(f"  {n}/{len(jobs)} ({time.perf_counter() - t0:.0f} s)", flush=True)
+        work.mkdir(parents=True, exist_ok=True)
+        np.savez(runs_path, **{f"{k}|{part}": v for k, (f, w) in done.items() for part, v in (("features", f),
+                                                                                              ("wrong", w))})
+
+    def stack(keys: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        return (np.concatenate([done[k][0] for k in keys]),
+                np.concatenate([done[k][1] for k in keys]).astype(bool))
+
+    wanted = [f"{rig}/{i}/{c or 'clean'}" for rig in RIGS for i in range(args.scenes) for c in CONDITIONS]
+    fit_keys = [k for k in wanted if int(k.split("/")[1]) % 3 != 2]
+    check_keys = [k for k in wanted if int(k.split("/")[1]) % 3 == 2]
+    x, wrong = stack(fit_keys)
+    mean, scale = x.mean(axis=0), np.maximum(x.std(axis=0), 1e-9)
+    model = LogisticRegression(C=1.0, max_iter=1000).fit((x - mean) / scale, ~wrong)
+    calibration = SupportCalibration(
+        SUPPORT_FEATURES, mean, scale, model.coef_[0], float(model.intercept_[0]), 0.5,
+        f"fused on {len(RIGS)} rigs x {args.scenes} generated scenes (seed {SEED}) x {len(CONDITIONS)} conditions "
+        f"(clean, single and combined errors), {x.shape[0]} segments of which {int(wrong.sum())} wrong; "
+        f"scripts/fit_support.py")
+    support = calibration.probability(x)
+    # The highest threshold whose flag keeps the precision on the fitted scenes.
+    candidates = np.unique(np.round(support, 3))
+    ok = [t for t in candidates if flag_scores(support, wrong, t)[0] >= args.precision and (support < t).any()]
+    check_below = float(max(ok)) if ok else 0.5
+    calibration = SupportCalibration(calibration.features, mean, scale, calibration.coef, calibration.intercept,
+                                     check_below, calibration.fitted_on)
+
+    print(f"\nfitted on {x.shape[0]} segments ({wrong.mean() * 100:.1f} % wrong); threshold: support < {check_below:.3f}")
+    print("| scenes | segments | wrong % | ECE | AUROC | flag precision % | flag recall % |")
+    print("|---|---|---|---|---|---|---|")
+    for name, keys in (("fitted", fit_keys), ("held out", check_keys)):
+        xs, ws = stack(keys)
+        ps = calibration.probability(xs)
+        precision, recall = flag_scores(ps, ws, check_below)
+        print(f"| {name} | {len(ws)} | {ws.mean() * 100:.1f} | {expected_calibration_error(ps, ~ws):.4f} | "
+              f"{roc_auc_score(ws, -ps):.3f} | {precision * 100:.1f} | {recall * 100:.1f} |")
+    print("\ncoefficients (standardised features):")
+    for name, c in zip(SUPPORT_FEATURES, calibration.coef):
+        print(f"  {name:<16} {c:+.3f}")
+    Path(args.out).write_text(json.dumps(calibration.to_json(), indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

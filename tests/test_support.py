@@ -1,0 +1,71 @@
+"""The calibrated support of ``fused``: the packaged calibration, its arithmetic against
+scikit-learn's, what it says on the real sample, and the quality benchmark's calibration error."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+
+import numpy as np
+import pytest
+
+from shadowcorr import ShadowCorrConfig, correspond, load_model
+from shadowcorr.stages import SUPPORT_FEATURES, SupportCalibration, support_calibration
+
+from .paths import REPO, SAMPLE_DIR
+
+
+def test_the_packaged_calibration_reads_this_versions_features():
+    calibration = support_calibration()
+    assert calibration.features == SUPPORT_FEATURES
+    assert calibration.coef.shape == calibration.mean.shape == calibration.scale.shape == (len(SUPPORT_FEATURES),)
+    assert (calibration.scale > 0).all() and 0.0 < calibration.check_below < 1.0
+    assert "scripts/fit_support.py" in calibration.fitted_on
+    # The evidence margin for the segment's own group raises the probability that it sits right.
+    assert calibration.coef[SUPPORT_FEATURES.index("margin")] > 0
+
+
+def test_probability_is_the_logistic_regression_that_was_fitted():
+    from sklearn.linear_model import LogisticRegression
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(400, len(SUPPORT_FEATURES))) * rng.uniform(0.5, 3.0, len(SUPPORT_FEATURES))
+    y = (x[:, 0] - 0.5 * x[:, 3] + rng.normal(size=400)) > 0
+    mean, scale = x.mean(axis=0), x.std(axis=0)
+    model = LogisticRegression().fit((x - mean) / scale, y)
+    calibration = SupportCalibration(SUPPORT_FEATURES, mean, scale, model.coef_[0], float(model.intercept_[0]), 0.3, "t")
+    expected = model.predict_proba((x - mean) / scale)[:, 1]
+    np.testing.assert_allclose(calibration.probability(x), expected, rtol=1e-10)
+    again = SupportCalibration.from_json(calibration.to_json())
+    np.testing.assert_allclose(again.probability(x), expected, rtol=1e-10)
+
+
+@pytest.mark.skipif(not SAMPLE_DIR.is_dir(), reason="sample data not available")
+def test_the_clean_samples_support_says_it_is_right():
+    """Every segment of the clean sample sits with its own rock (purity 100). A calibrated support
+    says so on average (its mean is near the share that sits right), and the flag, tuned for 50 %
+    precision on scenes with errors, raises few false alarms here."""
+    from shadowcorr.convert.ue import load_ue_scene
+
+    result = correspond(load_ue_scene(SAMPLE_DIR, 2001, (0, 2, 4, 6)), load_model(), ShadowCorrConfig())
+    assert result.metrics["average_purity"] == 100.0
+    support = np.array([s.support for s in result.segments])
+    assert ((support > 0) & (support < 1)).all()
+    assert support.mean() > 0.95
+    assert (support < support_calibration().check_below).mean() < 0.05
+
+
+def test_the_benchmarks_calibration_error_is_the_binned_gap():
+    spec = importlib.util.spec_from_file_location("bench_quality", REPO / "benchmarks" / "bench_quality.py")
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = bench
+    spec.loader.exec_module(bench)
+    # Two runs' bins: 10 segments at support ~0.95 of which 9 right, 4 at ~0.25 of which 2 right.
+    first = [[0] * 10, [0.0] * 10, [0.0] * 10]
+    first[0][9], first[1][9], first[2][9] = 6, 5.7, 5.0
+    second = [[0] * 10, [0.0] * 10, [0.0] * 10]
+    second[0][9], second[1][9], second[2][9] = 4, 3.8, 4.0
+    second[0][2], second[1][2], second[2][2] = 4, 1.0, 2.0
+    expected = 10 / 14 * abs(9 / 10 - 9.5 / 10) + 4 / 14 * abs(2 / 4 - 1.0 / 4)
+    assert bench.calibration_error([first, second]) == pytest.approx(expected)
+    assert np.isnan(bench.calibration_error([]))
