@@ -14,6 +14,9 @@ much of that surface, so the views can be registered to each other:
    scene).  The grid keeps the image layout, so each sample's normal comes from its grid
    neighbours (none across a depth edge), and any world point can be matched with the
    view's surface by projecting it into the camera: no search structure is needed.
+   Each view's depth noise is measured on that grid (``sigma(z) = a z^2``, from the second
+   differences along its rows) and sets the scale of everything noise touches below: the
+   normals span as many samples as the noise needs, and matching and fit bounds grow with it.
 2. **Pairs.**  Views sharing at least ``pose_min_overlap`` of their coarse cells are
    candidates (counted for all pairs at once by one sparse product); each view keeps its
    ``_MAX_PARTNERS`` best candidates plus a maximum spanning forest, so registrations grow
@@ -22,9 +25,9 @@ much of that surface, so the views can be registered to each other:
    the largest allowed pose error moves a point) brings the surfaces within a few
    centimetres; point-to-plane Gauss-Newton on every other grid sample, matched by
    projection into the other view (normals within 60 degrees, within
-   ``pose_point_spacing``), finishes.  A registration is used only when the surfaces
-   overlap enough afterwards, the RMS point-to-plane residual is under
-   ``pose_max_residual`` and the surface constrains all six degrees of freedom (the
+   ``pose_point_spacing`` or three noise sigmas), finishes.  A registration is used only
+   when the surfaces overlap enough afterwards, the RMS point-to-plane residual is under
+   ``pose_max_residual`` (or 1.5 noise sigmas) and the surface constrains all six degrees of freedom (the
    point-to-plane information matrix is not degenerate).  The views' clouds are made
    ``num_threads`` at a time; registration keeps one thread (small_gicp's multi-threaded
    sums would make the result depend on the thread count).
@@ -46,9 +49,14 @@ much of that surface, so the views can be registered to each other:
    whose correction exceeds ``pose_max_rotation_deg`` or ``pose_max_translation`` keeps
    its pose (``correction_too_large``); a view left
    without an accepted pair keeps its pose (``not_registered``); both are removed from
-   the graph, which is solved again without them.  Every view gets a report (applied
-   correction, residual, overlap) and a warning when it still disagrees with its
-   neighbours.
+   the graph, which is solved again without them.
+5. **Confirmed by the scene.**  Registration reads only depth, and depth noise can lead it
+   to a wrong motion that it then calls consistent.  The masks are independent evidence:
+   where two views see the same surface, they should agree on what is rock.  A group's
+   corrections are applied only when, moved by them, the views' masks agree better than
+   with the declared poses; otherwise every declared pose of the group stays
+   (``not_confirmed``).  Every view gets a report (applied correction, residual, overlap)
+   and a warning when it still disagrees with its neighbours or was not refined.
 
 Work is bounded and vectorised: about 20 000 samples per view, at most
 ``_COARSE_ITERATIONS`` GICP iterations (one thread) and ``2 x _FINE_ITERATIONS``
