@@ -69,9 +69,10 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorBody, "description": "bearer token missing or wrong, when the service has one (unauthorized)"},
     408: {"model": ErrorBody, "description": "headers or body too slow: header_timeout_s, body_timeout_s, "
           "min_upload_bytes_per_s (header_timeout, body_timeout)"},
-    413: {"model": ErrorBody, "description": "over a size or cost limit: max_body_bytes, max_segments, "
-          "max_scene_points, max_stage_seconds (payload_too_large, too_many_segments, too_many_points, "
-          "too_many_voxels, stage_too_slow, too_large)"},
+    413: {"model": ErrorBody, "description": "over a size or cost limit: max_body_bytes, max_scene_pixels, "
+          "max_mask_runs, max_segments, max_scene_points, max_stage_seconds, worker_memory_bytes (payload_too_large, "
+          "too_many_pixels, too_many_runs, too_many_segments, too_many_points, too_many_voxels, stage_too_slow, "
+          "too_large)"},
     415: {"model": ErrorBody, "description": "unsupported Content-Type (unsupported_media_type)"},
     429: {"model": ErrorBody, "description": "this client already has max_requests_per_client requests in flight "
           "(too_many_requests); see Retry-After",
