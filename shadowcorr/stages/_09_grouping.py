@@ -272,6 +272,8 @@ class _GroupLinks:
     group_views: np.ndarray  # (S,) other views holding a member of its group
     own_hits: np.ndarray  # (S,) its sample points landing on its group's segments
     own_trials: np.ndarray  # (S,) its points visible in its group's views and landing on some segment there
+    other_share: np.ndarray  # (S,) the highest share of its landings on one other group
+    other_volume: np.ndarray  # (S,) the highest pooled volumetric similarity to one other group (0 without)
 
 
 def _group_links(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> _GroupLinks:
@@ -330,7 +332,15 @@ def _group_links(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConf
     own_hits, own_trials = np.zeros(s), np.zeros(s)
     own_hits[seg[own]], own_trials[seg[own]] = hits_out[own], trials_out[own]
     group_views = (per_view[group] > 0).sum(axis=1) - (per_view[group, graph.view] == 1)
-    return _GroupLinks(own_link, best_other, alone, margin, group_views, own_hits, own_trials)
+    # The strongest pull of any other group, by surface (share of the segment's landings) and
+    # by volume (the network's pooled similarity): a piece of a rock that its group lost
+    # still lands on, and shares voxels with, the rest of that rock.
+    other_share, other_volume = np.zeros(s), np.zeros(s)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        np.maximum.at(other_share, seg[~own], np.where(trials_out > 0, hits_out / trials_out, 0.0)[~own])
+    np.maximum.at(other_volume, seg[~own], (volume / (mass + config.fusion_volume_prior))[~own])
+    return _GroupLinks(own_link, best_other, alone, margin, group_views, own_hits, own_trials, other_share,
+                       other_volume)
 
 
 def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:

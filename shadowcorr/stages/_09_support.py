@@ -37,6 +37,8 @@ SUPPORT_FEATURES = (
     "log_samples",  # log(1 + its sample points): small (eroded, split) segments carry little evidence
     "merged",  # 1 when read as a mask drawn over two objects
     "mask_siblings",  # 1 when other segments of its view wear its (split-joined) mask id
+    "other_share",  # the highest share of its landings on one other group
+    "other_volume",  # the highest volumetric similarity to one other group
 )
 
 
@@ -60,6 +62,8 @@ def support_features(graph: SegmentGraph, labels: np.ndarray, merged: np.ndarray
         np.log1p(graph.surface.samples.astype(np.float64)),
         merged.astype(np.float64),
         (mask_size[mask_of] > 1).astype(np.float64),
+        links.other_share,
+        links.other_volume,
     ], axis=1)
 
 
