@@ -254,20 +254,6 @@ def bench_archive(server: ServerProcess, tiny: tuple[bytes, dict, dict[str, byte
           f"(+{(sampler.peak - base) / MiB:.0f} MiB)")
 
 
-def _worker_hwm_growth(pid: int, send: Callable[[], httpx.Response]) -> tuple[httpx.Response, float, int]:
-    """Send; (response, seconds, bytes the worker's peak RSS rose above its RSS before)."""
-    def status_kb(field: str) -> int:
-        with open(f"/proc/{pid}/status") as fh:
-            return int(next(line for line in fh if line.startswith(field + ":")).split()[1])
-
-    with open(f"/proc/{pid}/clear_refs", "w") as fh:
-        fh.write("5")  # the kernel's high-water mark starts again from the current RSS
-    before = status_kb("VmRSS")
-    t0 = time.perf_counter()
-    r = send()
-    return r, time.perf_counter() - t0, (status_kb("VmHWM") - before) * 1024
-
-
 def bench_hostile(server: ServerProcess, tiny: tuple[bytes, dict, dict[str, bytes]]) -> None:
     print("\n[6] small uploads that would cost gigabytes, corrupt data and overflowing numbers (one worker's memory)")
     zipped, manifest, files = tiny
@@ -291,8 +277,10 @@ def bench_hostile(server: ServerProcess, tiny: tuple[bytes, dict, dict[str, byte
     for label, build in cases:
         body, content_type = build()
         (worker,) = server.worker_processes()
-        r, took, growth = _worker_hwm_growth(worker.pid, lambda: httpx.post(
+        t0 = time.perf_counter()
+        r, growth = hostile.peak_memory_growth(worker.pid, lambda: httpx.post(
             server.url + "/correspond", content=body, headers={"Content-Type": content_type}, timeout=600))
+        took = time.perf_counter() - t0
         code = r.json().get("error", "") if r.status_code != 200 else "labelled"
         print(f"  {label:<40} upload {len(body) / 1e3:8.1f} kB: {r.status_code} {code:<16} after {took:5.2f} s, "
               f"worker peak +{growth / MiB:.0f} MiB")

@@ -18,7 +18,6 @@ rerun only fits.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import multiprocessing as mp
 import sys
@@ -28,24 +27,22 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from tests.harness import load_bench_quality  # noqa: E402
+
 SEED = 5005
 RIGS = ("syn:4v", "syn:3v-arc90", "syn:8v", "syn:4v-low", "syn:6v-uneven")
 CONDITIONS = (None, "split20%", "merge10%", "erode5", "drop10%", "depth2%", "rot2", "mild", "field", "harsh")
 
 
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_quality", REPO / "benchmarks" / "bench_quality.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 _MODEL = None
+_BENCH = None  # the quality benchmark's catalogue and scoring, loaded once per worker
 
 
 def _init() -> None:
-    global _MODEL
+    global _MODEL, _BENCH
+    _BENCH = load_bench_quality()
     import torch
 
     import shadowcorr
@@ -57,9 +54,9 @@ def _init() -> None:
 def _run(job: tuple[str, str, int, str | None]) -> tuple[str, np.ndarray, np.ndarray]:
     """Features and wrongness of every scored segment of one (scene, condition)."""
     from shadowcorr import ShadowCorrConfig, load_bundle, prepare
-    from shadowcorr.stages import embed, evidence_graph_groups, support_features
+    from shadowcorr.stages import embed, group_by_evidence, support_features
 
-    bench = _bench()
+    bench = _BENCH
     key, path, index, condition = job
     bundle = load_bundle(path)
     if condition is not None:
@@ -67,10 +64,10 @@ def _run(job: tuple[str, str, int, str | None]) -> tuple[str, np.ndarray, np.nda
     config = ShadowCorrConfig()
     scene = prepare(bundle, config)
     (embeddings,) = embed(_MODEL, [scene])
-    labels, graph, merged = evidence_graph_groups(scene, embeddings, config)
-    features = support_features(graph, labels, merged, config)
+    groups = group_by_evidence(scene, embeddings, config)
+    features = support_features(groups, config)
     truth = scene.segment_truth  # the bundle's ground truth per segment, read here only to score
-    wrong = bench.wrong_segments(truth, labels)
+    wrong = bench.wrong_segments(truth, groups.labels)
     scored = truth >= 0
     return key, features[scored], wrong[scored]
 
@@ -105,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from shadowcorr.stages import SUPPORT_FEATURES, SupportCalibration
 
-    bench = _bench()
+    bench = load_bench_quality()
     work = Path(args.work)
     runs_path = work / "runs.npz"
     done: dict[str, tuple[np.ndarray, np.ndarray]] = {}

@@ -283,7 +283,8 @@ def check_instances(bundle: SceneBundle, limits: RequestLimits, min_blob_pixels:
       speckled mask of a few kilobytes of PNG holds millions.
     * 422 when no view has an instance pixel with valid depth: there is nothing to match.
 
-    Point-segment bundles are limited by the loader (``BundleLimits.max_segments``).
+    Point-segment bundles are limited by the loader (``BundleLimits.max_segments`` and
+    ``max_scene_points``, the latter before their points are decompressed).
     """
     if bundle.point_segments is not None:
         return

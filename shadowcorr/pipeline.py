@@ -26,6 +26,7 @@ from .stages._06_voxel_scene import VoxelScene, build_voxel_scene
 from .stages._07_network import baseline_embeddings, check_compatible, embed, model_info
 from .stages._09_clustering import cluster_voxels
 from .stages._09_grouping import group_by_evidence
+from .stages._09_support import segment_support
 from .stages._10_assignment import evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote
 
 __all__ = ["assign", "baseline_embeddings", "check_compatible", "correspond", "embed", "model_info", "prepare"]
@@ -126,7 +127,8 @@ def assign(
     timings = dict(scene.timings_ms)
     t0 = time.perf_counter()
     if config.method in SURFACE_METHODS:  # 08-09: evidence between segments -> groups -> 10
-        seg_label, support = group_by_evidence(scene, embeddings, config)
+        groups = group_by_evidence(scene, embeddings, config)
+        seg_label, support = groups.labels, segment_support(groups, config)
         voxel_label, how = evidence_labels(scene, seg_label)
         timings["grouping"] = _ms_since(t0)
         _check_stage_time(timings, config)

@@ -11,14 +11,31 @@ import dataclasses
 import io
 import json
 import zipfile
+from typing import Callable, TypeVar
 
 import numpy as np
 
 from .harness import MiB, zip_files, zipped_bundle
 
-__all__ = ["checkerboard_mask_bundle", "huge_point_npz_bundle", "many_empty_pixels_bundle", "corrupt_deflate_bundle"]
+__all__ = ["checkerboard_mask_bundle", "huge_point_npz_bundle", "many_empty_pixels_bundle", "corrupt_deflate_bundle",
+           "peak_memory_growth"]
 
 ZIP = "application/zip"
+T = TypeVar("T")
+
+
+def peak_memory_growth(pid: int, send: Callable[[], T]) -> tuple[T, int]:
+    """``send()``'s result and how many bytes process ``pid``'s peak resident memory rose above its
+    resident memory before (the kernel's high-water mark, reset first; Linux)."""
+    def status_bytes(field: str) -> int:
+        with open(f"/proc/{pid}/status") as fh:
+            return 1024 * int(next(line for line in fh if line.startswith(field + ":")).split()[1])
+
+    with open(f"/proc/{pid}/clear_refs", "w") as fh:
+        fh.write("5")  # VmHWM starts again from the current RSS
+    before = status_bytes("VmRSS")
+    result = send()
+    return result, status_bytes("VmHWM") - before
 
 
 def checkerboard_mask_bundle(width: int = 1920, height: int = 1080) -> tuple[bytes, str]:

@@ -4,18 +4,16 @@ table and summary it writes must agree with its per-run records."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
 import re
-import sys
 
 import numpy as np
 import pytest
 
 from shadowcorr.synth.physics import headless_gl_platform
-from tests.paths import REPO
+from tests.harness import load_bench_quality
 
 if not os.environ.get("DISPLAY"):
     os.environ.setdefault("MUJOCO_GL", headless_gl_platform())
@@ -30,17 +28,9 @@ TINY = {  # 4-5 rocks of 60-140 cm seen from 400 cm at 192x108 px: each rock a f
 CONDITIONS = "syn:4v,syn:4v+split20%,syn:4v+mild,syn:2v-opposite,real:04+drop10%"
 
 
-def _load_bench():
-    spec = importlib.util.spec_from_file_location("bench_quality", REPO / "benchmarks" / "bench_quality.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve their annotations through it
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    bench = _load_bench()
+    bench = load_bench_quality()
     tmp = tmp_path_factory.mktemp("bench_quality")
     argv = ["--scenes", "2", "--real-repeats", "2", "--workers", "1", "--methods", "shadowcorr,meanshift,no_such_method",
             "--conditions", CONDITIONS, "--noise-rigs", "syn:4v,real:04", "--synth", json.dumps(TINY),
@@ -119,7 +109,7 @@ def test_rerun_reuses_cache_and_records(run, capsys):
 
 
 def test_wrong_segments_and_conditions():
-    bench = _load_bench()
+    bench = load_bench_quality()
     truth = np.array([1, 1, 1, 2, 2, 2, 3, -1])
     pred = np.array([0, 0, 5, 0, 1, 1, 2, 0])  # rock 1 split (seg 2), rock 2's seg 3 merged into rock 1's object
     assert bench.wrong_segments(truth, pred).tolist() == [False, False, True, True, False, False, False, False]

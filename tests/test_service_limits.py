@@ -43,22 +43,14 @@ def _worker(server: ServerProcess):
     return worker
 
 
-def _status_kb(pid: int, field: str) -> int:
-    with open(f"/proc/{pid}/status") as fh:
-        line = next(line for line in fh if line.startswith(field + ":"))
-    return int(line.split()[1])
-
-
 def _post_measured(server: ServerProcess, body: bytes, content_type: str) -> tuple[httpx.Response, float]:
     """The response and how far the worker's peak resident memory rose above its resident
-    memory before the request (the kernel's high-water mark, reset first)."""
+    memory before the request."""
     pid = _worker(server).pid
-    with open(f"/proc/{pid}/clear_refs", "w") as fh:
-        fh.write("5")  # resets VmHWM to the current RSS
-    before = _status_kb(pid, "VmRSS") * 1024
-    r = httpx.post(server.url + "/correspond", content=body, headers={"Content-Type": content_type}, timeout=300)
+    r, growth = hostile.peak_memory_growth(pid, lambda: httpx.post(
+        server.url + "/correspond", content=body, headers={"Content-Type": content_type}, timeout=300))
     assert _worker(server).pid == pid, "the worker crashed and was replaced"
-    return r, _status_kb(pid, "VmHWM") * 1024 - before
+    return r, growth
 
 
 @pytest.mark.parametrize("build, code, limit", [

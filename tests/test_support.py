@@ -3,16 +3,14 @@ scikit-learn's, what it says on the real sample, and the quality benchmark's cal
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-
 import numpy as np
 import pytest
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model
 from shadowcorr.stages import SUPPORT_FEATURES, SupportCalibration, support_calibration
 
-from .paths import REPO, SAMPLE_DIR
+from .harness import load_bench_quality
+from .paths import SAMPLE_DIR
 
 
 def test_the_packaged_calibration_reads_this_versions_features():
@@ -56,10 +54,7 @@ def test_the_clean_samples_support_says_it_is_right():
 
 
 def test_the_benchmarks_calibration_error_is_the_binned_gap():
-    spec = importlib.util.spec_from_file_location("bench_quality", REPO / "benchmarks" / "bench_quality.py")
-    bench = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = bench
-    spec.loader.exec_module(bench)
+    bench = load_bench_quality()
     # Two runs' bins: 10 segments at support ~0.95 of which 9 right, 4 at ~0.25 of which 2 right.
     first = [[0] * 10, [0.0] * 10, [0.0] * 10]
     first[0][9], first[1][9], first[2][9] = 6, 5.7, 5.0

@@ -694,7 +694,8 @@ def refine_poses(
     declared_r, declared_t = np.broadcast_to(np.eye(3), (n, 3, 3)), np.zeros((n, 3))
     for g in np.unique(group[in_graph]):
         members = [k for k in np.flatnonzero(group == g) if status[k] == "corrected"]
-        pairs = [(i, j) for i, j in candidates if i in members or j in members]
+        moving = set(members)
+        pairs = [(i, j) for i, j in candidates if i in moving or j in moving]
         if not members or not pairs:
             continue
         moved_r, moved_t = declared_r.copy(), declared_t.copy()

@@ -516,27 +516,22 @@ def without_landings_on(surface: SurfaceEvidence, view: np.ndarray, drop: np.nda
                    hit_target=surface.hit_target[keep], hit_count=surface.hit_count[keep])
 
 
-def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: ShadowCorrConfig
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Group label and support of every segment from the evidence between segments.
+@dataclass
+class EvidenceGroups:
+    """What grouping by evidence hands on: a group per segment and the evidence it was read from."""
 
-    ``projection`` links segments by cross-view landings alone (support: the margin's logistic,
-    :func:`segment_confidence`); ``fused`` adds the network's volumetric evidence
-    (``embeddings``), resolves both by signed average linkage, and its support is the calibrated
-    probability that the segment sits with its own object (``_09_support``).
+    labels: np.ndarray  # (S,) group of each segment
+    graph: SegmentGraph  # the evidence the groups were resolved from
+    merged: np.ndarray  # (S,) bool: read as a mask drawn over two objects
+
+
+def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: ShadowCorrConfig) -> EvidenceGroups:
+    """The group of every segment from the evidence between segments.
+
+    ``projection`` links segments by cross-view landings alone; ``fused`` adds the network's
+    volumetric evidence (``embeddings``) and resolves both by signed average linkage.  How sure
+    each segment's group is comes next (``_09_support.segment_support``).
     """
-    from ._09_support import segment_support, support_features
-
-    labels, graph, merged = evidence_graph_groups(scene, embeddings, config)
-    if config.method == "fused":
-        return labels, segment_support(support_features(graph, labels, merged, config))
-    return labels, segment_confidence(graph, labels, config)
-
-
-def evidence_graph_groups(scene: VoxelScene, embeddings: np.ndarray | None, config: ShadowCorrConfig
-                          ) -> tuple[np.ndarray, SegmentGraph, np.ndarray]:
-    """The group label of every segment, the evidence graph it was read from and which segments
-    were read as merged masks (see :func:`group_by_evidence`)."""
     if scene.surface is None:
         raise ValueError(f"method {config.method!r} needs a scene prepared with method {config.method!r} "
                          "(its cross-view surface evidence is missing)")
@@ -556,7 +551,7 @@ def evidence_graph_groups(scene: VoxelScene, embeddings: np.ndarray | None, conf
         labels = link_components(scene.surface, scene.segment_view, config)
     else:
         labels = join_nearest_surface(agglomerate(graph, config), surface, scene.segment_view, merged, config)
-    return labels[:s], graph, merged
+    return EvidenceGroups(labels[:s], graph, merged)
 
 
 def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.ndarray, segments: np.ndarray,

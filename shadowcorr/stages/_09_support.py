@@ -1,4 +1,4 @@
-"""Stage 9, the support of ``fused``: the probability that a segment sits with its own object.
+"""Stage 9, how sure each segment's group is; for ``fused``, the probability that it sits with its own object.
 
 The grouping's evidence margin (its own group's linkage over the best alternative) says how
 a segment's place was decided, not how often such a decision is right: under a segmenter's
@@ -7,8 +7,8 @@ large segment with a thin one.  So the support is a logistic regression on what 
 says about the segment (:data:`SUPPORT_FEATURES`), fitted on generated scenes under single and
 combined errors whose truth is known (``scripts/fit_support.py``; the scenes differ from the
 quality benchmark's), and shipped as ``models/support.json`` with the threshold below which a
-segment is worth checking: the highest that still flags wrong segments with at least the
-precision the file names.
+segment is worth checking: the highest that still flags wrong segments with 50 % precision on
+the fitted scenes (``--precision``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from importlib import resources
 import numpy as np
 
 from ..config import ShadowCorrConfig
-from ._09_grouping import SegmentGraph, _group_links
+from ._09_grouping import EvidenceGroups, _group_links, segment_confidence
 
 __all__ = ["SUPPORT_FEATURES", "SupportCalibration", "support_calibration", "support_features", "segment_support"]
 
@@ -42,13 +42,12 @@ SUPPORT_FEATURES = (
 )
 
 
-def support_features(graph: SegmentGraph, labels: np.ndarray, merged: np.ndarray, config: ShadowCorrConfig
-                     ) -> np.ndarray:
+def support_features(groups: EvidenceGroups, config: ShadowCorrConfig) -> np.ndarray:
     """(S, len(SUPPORT_FEATURES)) what the evidence says about each segment's place (see SUPPORT_FEATURES)."""
-    s = graph.num_segments
-    if s == 0:
+    graph = groups.graph
+    if graph.num_segments == 0:
         return np.zeros((0, len(SUPPORT_FEATURES)))
-    links = _group_links(graph, labels, config)
+    links = _group_links(graph, groups.labels, config)
     key = graph.view.astype(np.int64) * (int(graph.instance.max(initial=0)) + 1) + graph.instance
     _, mask_of, mask_size = np.unique(key, return_inverse=True, return_counts=True)
     return np.stack([
@@ -60,7 +59,7 @@ def support_features(graph: SegmentGraph, labels: np.ndarray, merged: np.ndarray
         links.own_hits / np.maximum(links.own_trials, 1.0),
         np.log1p(links.own_trials),
         np.log1p(graph.surface.samples.astype(np.float64)),
-        merged.astype(np.float64),
+        groups.merged.astype(np.float64),
         (mask_size[mask_of] > 1).astype(np.float64),
         links.other_share,
         links.other_volume,
@@ -106,6 +105,11 @@ def support_calibration() -> SupportCalibration:
     return calibration
 
 
-def segment_support(features: np.ndarray) -> np.ndarray:
-    """(S,) the calibrated probability that each segment sits with its own object."""
+def segment_support(groups: EvidenceGroups, config: ShadowCorrConfig) -> np.ndarray:
+    """(S,) how sure each segment's group is: for ``fused`` the calibrated probability that the
+    segment sits with its own object; for ``projection`` the margin's logistic
+    (:func:`~shadowcorr.stages.segment_confidence`)."""
+    if config.method != "fused":
+        return segment_confidence(groups.graph, groups.labels, config)
+    features = support_features(groups, config)
     return support_calibration().probability(features) if len(features) else np.zeros(0)

@@ -77,7 +77,7 @@ _EXPORTS = {
     "merged_mask_segments": "_09_grouping",
     "join_nearest_surface": "_09_grouping",
     "segment_confidence": "_09_grouping",
-    "evidence_graph_groups": "_09_grouping",
+    "EvidenceGroups": "_09_grouping",
     "SUPPORT_FEATURES": "_09_support",
     "SupportCalibration": "_09_support",
     "segment_support": "_09_support",
@@ -113,7 +113,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._08_volume_evidence import segment_embeddings, volume_pairs
     from ._09_clustering import cluster_voxels, majority_vote, mean_shift, merge_small_clusters
     from ._09_grouping import (
-        SegmentGraph, agglomerate, evidence_graph_groups, group_by_evidence, join_nearest_surface, link_components,
+        EvidenceGroups, SegmentGraph, agglomerate, group_by_evidence, join_nearest_surface, link_components,
         merged_mask_segments, segment_confidence, split_mask_ids, without_landings_on,
     )
     from ._09_support import SUPPORT_FEATURES, SupportCalibration, segment_support, support_calibration, support_features
