@@ -8,7 +8,7 @@ from pydantic import BaseModel, Field
 
 from ._version import __version__
 
-Assignment = Literal["vote", "unfiltered_voxels", "nearest_object", "own_object", "evidence"]
+Assignment = Literal["vote", "unfiltered_voxels", "nearest_object", "own_object", "same_mask", "evidence"]
 
 
 class SegmentLabel(BaseModel):
@@ -29,6 +29,7 @@ class SegmentLabel(BaseModel):
         "(no voxel survived the consensus filter: nearest kept voxels of its own shadow voted); "
         "'nearest_object' (no shadow at all: nearest kept voxel to its centroid); "
         "'own_object' (no valid 3D point, or its shadow is near no kept voxel: an object of its own); "
+        "'same_mask' (methods 'projection' and 'fused', no valid 3D point: grouped with another blob of its mask); "
         "'evidence' (methods 'projection' and 'fused': grouped by the evidence between segments)",
     )
 

@@ -15,7 +15,7 @@ from shadowcorr.stages import (
     merged_mask_segments, sample_segment_points, segment_confidence, split_mask_ids, surface_evidence, without_landings_on,
 )
 
-from shadowcorr.stages._09_grouping import _Groups, _initial_heap
+from shadowcorr.stages._09_grouping import _group_links, _Groups, _initial_heap
 
 from .scenes import sphere_scene
 from .test_engine import FIELD_CENTRES, FIELD_RADII, same_partition
@@ -283,24 +283,71 @@ def test_a_merged_mask_does_not_chain_a_rock_that_lands_mostly_on_it():
     assert labels[0] == labels[1] == labels[4] and labels[2] == labels[3] and labels[0] != labels[2]
 
 
-def test_the_first_linkages_computed_at_once_equal_those_of_the_merge_loop():
-    # Random evidence among 40 segments of 4 views; some pairs share a view and a mask id.
-    rng = np.random.default_rng(3)
-    s = 40
+def _random_graph(seed: int, s: int = 40) -> SegmentGraph:
+    """Random evidence among ``s`` segments of 4 views; some pairs share a view and a mask id."""
+    rng = np.random.default_rng(seed)
     view, instance = rng.integers(0, 4, s), rng.integers(1, 6, s)
     on_mask = rng.integers(0, 300, (s, 4)) * (view[:, None] != np.arange(4))
-    hits = [(a, b, int(rng.integers(1, 200))) for a, b in rng.integers(0, s, (120, 2)) if view[a] != view[b]]
+    hits = [(a, b, int(rng.integers(1, 200))) for a, b in rng.integers(0, s, (3 * s, 2)) if view[a] != view[b]]
     hits = list({(a, b): (a, b, h) for a, b, h in hits}.values())  # one row per directed pair
     volume = [(a, b, float(rng.uniform(-1, 1)), float(rng.uniform(0, 2)))
-              for a, b in {(min(a, b), max(a, b)) for a, b in rng.integers(0, s, (80, 2)) if a != b}]
-    graph = _graph(view.tolist(), instance.tolist(), on_mask, hits, volume)
+              for a, b in {(min(a, b), max(a, b)) for a, b in rng.integers(0, s, (2 * s, 2)) if a != b}]
+    return _graph(view.tolist(), instance.tolist(), on_mask, hits, volume)
+
+
+def test_the_first_linkages_computed_at_once_equal_those_of_the_merge_loop():
+    s = 40
+    graph = _random_graph(3, s)
     config = ShadowCorrConfig(method="fused")
     groups = _Groups(graph, config)
-    heap = _initial_heap(graph, groups, config)
+    heap = _initial_heap(graph, config)
     expected = {(g, h): groups.linkage(g, h) for g in range(s) for h in groups.edges[g] if g < h}
     assert len(heap) == len(expected) > 100
     for negated, g, h, _, _ in heap:
         assert -negated == expected[(g, h)]  # bit for bit: the merge order depends on it
+
+
+def _scalar_links(graph: SegmentGraph, labels: np.ndarray, x: int, config: ShadowCorrConfig) -> dict[int, float]:
+    """The merge loop's linkage of segment ``x`` alone to every group it has an edge with, keyed
+    by group label, from groups built by the merge loop itself; and to the rest of its own group
+    (with or without an edge: the constraints of their shared view count either way)."""
+    groups = _Groups(graph, config)
+    root = {}
+    for seg in range(graph.num_segments):
+        if seg == x:
+            continue
+        label = int(labels[seg])
+        root[label] = groups.merge(root[label], seg) if label in root else seg
+    if int(labels[x]) in root:
+        groups._edge(x, root[int(labels[x])])  # no evidence: zero counts
+    label_of = {r: label for label, r in root.items()}
+    return {label_of[other]: groups.linkage(x, other) for other in groups.edges[x]}
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_the_confidence_summarises_the_linkage_of_the_merge_loop(seed):
+    # Random groups of random evidence: per segment, the vectorised linkage to its own group and
+    # to the best other one equals the merge loop's, and the confidence is their logistic margin.
+    s = 40
+    graph = _random_graph(seed, s)
+    config = ShadowCorrConfig(method="fused")
+    labels = np.random.default_rng(seed).integers(0, 9, s)
+    labels[:3] = 20 + np.arange(3)  # three segments alone
+    links = _group_links(graph, labels, config)
+    confidence = segment_confidence(graph, labels, config)
+    checked_other = 0
+    for x in range(s):
+        scalar = _scalar_links(graph, labels, x, config)
+        own = scalar.pop(int(labels[x]), 0.0)
+        best = max(scalar.values(), default=-np.inf)
+        assert links.own_link[x] == pytest.approx(own, rel=1e-12, abs=1e-12)
+        assert links.best_other[x] == pytest.approx(best, rel=1e-12, abs=1e-12)
+        checked_other += bool(scalar)
+        alone = int((labels == labels[x]).sum()) == 1
+        margin = (-best if np.isfinite(best) else 0.0) if alone else own - max(best, 0.0)
+        expected = 1.0 / (1.0 + np.exp(-config.fusion_confidence_slope * margin))
+        assert confidence[x] == pytest.approx(expected, rel=1e-12)
+    assert checked_other > s // 2
 
 
 def test_volumetric_evidence_alone_joins_and_separates():
@@ -346,3 +393,24 @@ def test_a_merged_mask_joins_the_group_that_owns_most_of_its_surface():
     even = replace(surface, points=split)
     assert join_nearest_surface(labels, even, view, merged, config).tolist() == [0, 1, 1, 1]
     assert join_nearest_surface(labels, surface, view, np.zeros(4, bool), config) is labels
+
+
+@pytest.mark.parametrize("method", GRAPH_METHODS)
+def test_a_blob_without_depth_is_reported_as_what_happened_to_it(model, method):
+    # View 0: the sphere's mask gets a second blob, far from the sphere and without valid depth.
+    bundle = sphere_scene([[0, 0, 0]], [40], cameras=3)
+    view = bundle.views[0]
+    value = int(view.mask[view.mask > 0].max())
+    view.mask[5:20, 5:20] = value
+    view.depth[5:20, 5:20] = 0
+    result = correspond(bundle, model, ShadowCorrConfig(method=method))
+    (empty,) = [s for s in result.segments if s.num_points == 0]
+    (sibling,) = [s for s in result.segments if s.view == empty.view and s.segment != empty.segment]
+    assert empty.instance == sibling.instance
+    if empty.object == sibling.object:  # fused: the same-mask constraint joins the blobs
+        assert empty.assignment == "same_mask"
+        assert any("joined the other blobs of its mask" in w for w in result.warnings), result.warnings
+    else:  # projection links by landings only: a blob nothing lands on stays alone
+        assert empty.assignment == "own_object"
+        assert sum(s.object == empty.object for s in result.segments) == 1
+    assert method == "projection" or empty.object == sibling.object

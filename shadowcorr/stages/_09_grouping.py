@@ -155,11 +155,7 @@ class _Groups:
                 e = self._edge(g, h)
                 e[2] += value * mass
                 e[3] += mass
-        # Blobs of one mask id in one view are candidates too, even without other evidence.
-        key = graph.view.astype(np.int64) * (int(graph.instance.max(initial=0)) + 1) + graph.instance
-        order = np.argsort(key, kind="stable")
-        same = np.flatnonzero(key[order][1:] == key[order][:-1])
-        for a, b in zip(order[same].tolist(), order[same + 1].tolist()):
+        for a, b in zip(*(x.tolist() for x in _same_mask_pairs(graph))):
             self._edge(a, b)
             self._edge(b, a)
 
@@ -228,7 +224,7 @@ class _Groups:
 def agglomerate(graph: SegmentGraph, config: ShadowCorrConfig) -> np.ndarray:
     """Group label of every segment by signed average linkage (see the module docstring)."""
     groups = _Groups(graph, config)
-    heap = _initial_heap(graph, groups, config)
+    heap = _initial_heap(graph, config)
     heapq.heapify(heap)
     while heap:
         neg, g, h, vg, vh = heapq.heappop(heap)
@@ -242,50 +238,57 @@ def agglomerate(graph: SegmentGraph, config: ShadowCorrConfig) -> np.ndarray:
     return groups.labels()
 
 
-def _initial_heap(graph: SegmentGraph, groups: _Groups, config: ShadowCorrConfig) -> list[tuple]:
+def _same_mask_pairs(graph: SegmentGraph) -> tuple[np.ndarray, np.ndarray]:
+    """Blobs of one mask id in one view, as a chain of pairs (each blob with the next one):
+    candidates for joining even without other evidence (the same-mask constraint)."""
+    key = graph.view.astype(np.int64) * (int(graph.instance.max(initial=0)) + 1) + graph.instance
+    order = np.argsort(key, kind="stable")
+    same = np.flatnonzero(key[order][1:] == key[order][:-1])
+    return order[same], order[same + 1]
+
+
+def _initial_heap(graph: SegmentGraph, config: ShadowCorrConfig) -> list[tuple]:
     """Heap entries of every linked pair of single segments, their linkages computed in one
-    vectorised call: the values :meth:`_Groups.linkage` gives, bit for bit (the same float64
-    operations in the same order), at a fraction of the time of one Python call per pair."""
-    pairs = [(g, h, *e) for g in range(graph.num_segments) for h, e in groups.edges[g].items() if g < h]
-    if not pairs:
+    vectorised call (:func:`_segment_group_linkage` with every segment its own group): the
+    values :meth:`_Groups.linkage` gives, bit for bit (every pooled count is a single term
+    there), at a fraction of the time of one Python call per pair."""
+    if graph.num_segments == 0:
         return []
-    table = np.array(pairs, dtype=np.float64)
-    g, h = table[:, 0].astype(np.int64), table[:, 1].astype(np.int64)
-    trials = graph.surface.on_mask.astype(np.float64)
-    # A single segment has one view and one mask id: two of them share a view or none.
-    same_view = graph.view[g] == graph.view[h]
-    same_id = graph.instance[g] == graph.instance[h]
-    agree, differ = (same_view & same_id).astype(np.float64), (same_view & ~same_id).astype(np.float64)
-    link = linkage(table[:, 2], trials[g, graph.view[h]], table[:, 3], trials[h, graph.view[g]], table[:, 4],
-                   table[:, 5], agree, differ, config)
-    return [(-value, a, b, 0, 0) for value, a, b in zip(link.tolist(), g.tolist(), h.tolist())]
+    pairs = _segment_group_linkage(graph, np.arange(graph.num_segments), config)
+    first = pairs.segment < pairs.group  # each unordered pair once (the linkage is symmetric)
+    return [(-value, a, b, 0, 0) for value, a, b in
+            zip(pairs.value[first].tolist(), pairs.segment[first].tolist(), pairs.group[first].tolist())]
 
 
 @dataclass
-class _GroupLinks:
-    """Per segment, its linkage to its own group and to the best other one (see :func:`segment_confidence`)."""
+class _PairLinkage:
+    """The linkage of a segment alone to a group, per (segment, group) pair with evidence."""
 
-    own_link: np.ndarray  # (S,) linkage of the segment alone to the rest of its group (0 when alone)
-    best_other: np.ndarray  # (S,) the highest linkage to another group (-inf: no evidence with any)
-    alone: np.ndarray  # (S,) bool: its group holds only the segment
-    margin: np.ndarray  # (S,) own group over the best alternative (another group, or standing alone)
-    group_views: np.ndarray  # (S,) other views holding a member of its group
-    own_hits: np.ndarray  # (S,) its sample points landing on its group's segments
-    own_trials: np.ndarray  # (S,) its points visible in its group's views and landing on some segment there
-    other_share: np.ndarray  # (S,) the highest share of its landings on one other group
-    other_volume: np.ndarray  # (S,) the highest pooled volumetric similarity to one other group (0 without)
+    segment: np.ndarray  # (P,) the segment
+    group: np.ndarray  # (P,) the group
+    own: np.ndarray  # (P,) bool: the group is the segment's own (then the rest of it, without the segment)
+    value: np.ndarray  # (P,) the linkage (0 where the group holds nothing but the segment)
+    hits_out: np.ndarray  # (P,) the segment's points landing on the group
+    trials_out: np.ndarray  # (P,) its points visible in the group's views and landing on some segment there
+    volume: np.ndarray  # (P,) summed volumetric value * mass between the segment and the group
+    mass: np.ndarray  # (P,) summed volumetric mass
+    per_view: np.ndarray  # (K, V) members of each group per view
 
 
-def _group_links(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> _GroupLinks:
-    """For every segment, the linkage (as between groups) of the segment alone to the rest of
-    its own group, and to every other group it has evidence with.  Vectorised over (segment,
-    group) pairs that have evidence."""
+def _segment_group_linkage(graph: SegmentGraph, group: np.ndarray, config: ShadowCorrConfig) -> _PairLinkage:
+    """The linkage, as between groups (:func:`linkage`), of every segment alone to its own group
+    (the rest of it) and to every group it has evidence with (landings, shared volume, or a blob
+    of its mask), for groups numbered ``0..K-1`` in ``group``.  The vectorised counterpart of
+    :meth:`_Groups.linkage`, pooling the same counts: the first linkages of the agglomeration
+    (every segment its own group) and the confidence of its result both come from here."""
     s = graph.num_segments
-    _, group = np.unique(labels, return_inverse=True)
     k, num_views = int(group.max()) + 1, graph.surface.on_mask.shape[1]
     surf = graph.surface
-    src = np.concatenate([surf.hit_source, surf.hit_target, graph.volume_a, graph.volume_b, np.arange(s)])
-    dst = np.concatenate([surf.hit_target, surf.hit_source, graph.volume_b, graph.volume_a, np.arange(s)])
+    mask_a, mask_b = _same_mask_pairs(graph)
+    src = np.concatenate([surf.hit_source, surf.hit_target, graph.volume_a, graph.volume_b, mask_a, mask_b,
+                          np.arange(s)])
+    dst = np.concatenate([surf.hit_target, surf.hit_source, graph.volume_b, graph.volume_a, mask_b, mask_a,
+                          np.arange(s)])
     keys = np.unique(src * k + group[dst])
     seg, grp = keys // k, keys % k
     own = grp == group[seg]
@@ -321,6 +324,34 @@ def _group_links(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConf
     pairs = np.bincount(group, minlength=k)[grp] - own
     value = np.where(pairs > 0, linkage(hits_out, trials_out, hits_in, trials_in, volume, mass, agree, differ,
                                         config), 0.0)
+    return _PairLinkage(seg, grp, own, value, hits_out, trials_out, volume, mass, per_view)
+
+
+@dataclass
+class _GroupLinks:
+    """Per segment, its linkage to its own group and to the best other one (see :func:`segment_confidence`)."""
+
+    own_link: np.ndarray  # (S,) linkage of the segment alone to the rest of its group (0 when alone)
+    best_other: np.ndarray  # (S,) the highest linkage to another group (-inf: no evidence with any)
+    alone: np.ndarray  # (S,) bool: its group holds only the segment
+    margin: np.ndarray  # (S,) own group over the best alternative (another group, or standing alone)
+    group_views: np.ndarray  # (S,) other views holding a member of its group
+    own_hits: np.ndarray  # (S,) its sample points landing on its group's segments
+    own_trials: np.ndarray  # (S,) its points visible in its group's views and landing on some segment there
+    other_share: np.ndarray  # (S,) the highest share of its landings on one other group
+    other_volume: np.ndarray  # (S,) the highest pooled volumetric similarity to one other group (0 without)
+
+
+def _group_links(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> _GroupLinks:
+    """For every segment, the linkage (as between groups) of the segment alone to the rest of
+    its own group, and to every other group it has evidence with (:func:`_segment_group_linkage`)."""
+    s = graph.num_segments
+    _, group = np.unique(labels, return_inverse=True)
+    k = int(group.max()) + 1
+    pairs = _segment_group_linkage(graph, group, config)
+    seg, own, value = pairs.segment, pairs.own, pairs.value
+    hits_out, trials_out, volume, mass = pairs.hits_out, pairs.trials_out, pairs.volume, pairs.mass
+    per_view = pairs.per_view
 
     own_link = np.zeros(s)
     own_link[seg[own]] = value[own]

@@ -28,10 +28,21 @@ from ._09_clustering import majority_vote
 def evidence_labels(scene: VoxelScene, seg_label: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """Voxel labels and how each segment was labelled, for segments grouped by evidence.
 
-    A segment without a single valid 3D point has no evidence: an object of its own.
+    A segment without a single valid 3D point has no surface or volume evidence of its own.
+    Alone in its group it is an object of its own (``own_object``); in a group with a blob of
+    its own mask (same view, same mask value) ``same_mask`` (under ``fused`` the same-mask
+    constraint joins them); in a group without one, ``evidence`` (other views landed on it).
     """
-    how = ["own_object" if n == 0 else "evidence" for n in scene.segment_num_points.tolist()]
-    return label_voxels_by_segment(scene, seg_label), how
+    how = np.where(scene.segment_num_points == 0, "own_object", "evidence").astype(object)
+    empty = np.flatnonzero(scene.segment_num_points == 0)
+    if empty.size:
+        _, group, size = np.unique(seg_label, return_inverse=True, return_counts=True)
+        mask_key = scene.segment_view.astype(np.int64) * (int(scene.segment_instance.max()) + 1) + scene.segment_instance
+        _, blobs_of_mask_in_group = np.unique(group * (int(mask_key.max()) + 1) + mask_key, return_inverse=True)
+        siblings = np.bincount(blobs_of_mask_in_group)[blobs_of_mask_in_group] - 1
+        grouped = size[group[empty]] > 1
+        how[empty[grouped]] = np.where(siblings[empty[grouped]] > 0, "same_mask", "evidence")
+    return label_voxels_by_segment(scene, seg_label), how.tolist()
 
 
 def vote(scene: VoxelScene, voxel_label: np.ndarray, max_gap: float) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -130,6 +141,7 @@ _HOW = {
     "unfiltered_voxels": "labelled by the kept voxels nearest to its own shadow",
     "nearest_object": "labelled by the kept voxel nearest to its centroid",
     "own_object": "given an object of its own",
+    "same_mask": "joined the other blobs of its mask",
 }
 
 
