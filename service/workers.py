@@ -176,9 +176,6 @@ class WorkerPool:
     def pending(self) -> int:
         return self._queue.qsize()
 
-    def pids(self) -> list[int]:
-        return [s.pid for s in self._slots if s.pid is not None]
-
     # ------------------------------------------------------------------ jobs
     async def run(
         self,

@@ -78,10 +78,6 @@ class BundleError(ValueError):
         """JSON-ready problem list (``[{"loc": ..., "msg": ...}]``)."""
         return [p.model_dump() for p in self.problems]
 
-    def prefixed(self, prefix: str) -> "BundleError":
-        """Same problems with ``prefix`` prepended to every loc (``prefix.loc``)."""
-        return BundleError([Problem(loc=_join(prefix, p.loc), msg=p.msg) for p in self.problems])
-
 
 class DepthRangeError(ValueError):
     """Nearly every segment of a scene has no valid depth point (wrong ``units``, or ``max_depth`` too small).

@@ -41,31 +41,6 @@ def quaternion_to_matrix(q) -> np.ndarray:
     ], axis=-2)
 
 
-def matrix_to_quaternion(rotation) -> np.ndarray:
-    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a 3x3 rotation matrix.
-
-    Shepperd's method: the largest of the four squared components is computed first,
-    so the division is never by a small number.
-    """
-    m = np.asarray(rotation, dtype=np.float64)
-    trace = np.trace(m)
-    diag = np.diag(m)
-    k = int(np.argmax([trace, *diag]))
-    if k == 0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    else:
-        i = k - 1
-        j, l = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[l, l])
-        q = [0.0, 0.0, 0.0, (m[l, j] - m[j, l]) / s]
-        q[i] = 0.25 * s
-        q[j] = (m[j, i] + m[i, j]) / s
-        q[l] = (m[l, i] + m[i, l]) / s
-    quat = np.asarray(q)
-    return quat if quat[3] >= 0 else -quat
-
-
 def slerp(q0, q1, t: float) -> np.ndarray:
     """Spherical linear interpolation between unit quaternions ``(x, y, z, w)`` at ``t`` in [0, 1].
 

@@ -57,7 +57,6 @@ ALL = [
     lambda b, r: perturb.split_masks(b, r, 0.5),
     lambda b, r: perturb.merge_touching(b, r, 0.5),
     lambda b, r: perturb.drop_masks(b, r, 0.2),
-    lambda b, r: perturb.relabel_ids(b, r),
     lambda b, r: perturb.spurious_blobs(b, r, 4, radius_px=(2.0, 5.0), on_rocks=0.5),
 ]
 
@@ -278,20 +277,10 @@ def test_drop_masks_removes_the_share(scene):
     assert out.ground_truth == "instance"
 
 
-def test_relabel_keeps_partition_and_truth(scene):
-    out = perturb.relabel_ids(scene, _rng(8))
-    assert out.ground_truth == "mapped"
-    for vi, (clean, view) in enumerate(zip(scene.views, out.views)):
-        assert np.array_equal(_object_image(out, vi), _object_image(scene, vi))
-        pairs = np.unique(np.stack([clean.mask.ravel(), view.mask.ravel()]), axis=1)
-        assert pairs.shape[1] == np.unique(clean.mask).size, "a one-to-one relabelling"
-        assert set(np.unique(view.mask)) - {0} == set(range(1, np.unique(clean.mask).size))
-
-
 def test_truth_survives_chains_of_id_changes(scene):
-    """split then merge then relabel: mapped truth in, mapped truth out, pixels keep their objects
-    except where a merge decided by majority."""
-    out = perturb.relabel_ids(perturb.split_masks(scene, _rng(9), 0.5), _rng(10))
+    """split then merge: mapped truth in, mapped truth out, pixels keep their objects except
+    where a merge decided by majority."""
+    out = perturb.split_masks(scene, _rng(9), 0.5)
     for vi in range(len(scene.views)):
         assert np.array_equal(_object_image(out, vi), _object_image(scene, vi))
     merged = perturb.merge_touching(out, _rng(11), 0.5)

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 import shadowcorr
 from shadowcorr.bundle import Intrinsics, SceneBundle, View
@@ -21,7 +22,7 @@ from shadowcorr.cli import main as cli_main
 from shadowcorr.convert import load_ue_scene
 from shadowcorr.convert.rosbag import BagCamera, RosbagError, discover_cameras, load_rosbag_scene
 from shadowcorr.io import load_bundle
-from shadowcorr.poses import look_at_pose, matrix_to_quaternion
+from shadowcorr.poses import look_at_pose
 
 from .paths import SAMPLE_DIR
 
@@ -111,7 +112,7 @@ class BagWriter:
         t = self.types
         items = []
         for parent, child, m in transforms:
-            q = matrix_to_quaternion(m[:3, :3])
+            q = Rotation.from_matrix(m[:3, :3]).as_quat()  # (x, y, z, w)
             items.append(t["geometry_msgs/msg/TransformStamped"](
                 header=self.header(stamp, parent), child_frame_id=child,
                 transform=t["geometry_msgs/msg/Transform"](

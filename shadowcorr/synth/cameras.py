@@ -32,10 +32,6 @@ class Camera:
     width: int
     height: int
 
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
-
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World points (N, 3) -> pixel coordinates (N, 2) and z-depth (N,)."""
         r, t = self.pose[:3, :3], self.pose[:3, 3]
@@ -44,16 +40,6 @@ class Camera:
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = np.stack([self.fx * pc[:, 0] / z + self.cx, self.fy * pc[:, 1] / z + self.cy], axis=1)
         return uv, z
-
-    def pixel_rays(self) -> np.ndarray:
-        """World-frame ray directions (H*W, 3) through every pixel centre, row-major.
-
-        Not normalised: each has unit z in the camera frame, so a hit at ray parameter
-        s has z-depth s exactly (the renderer uses that to turn range into z-depth).
-        """
-        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
-        d = np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
-        return d @ self.pose[:3, :3].T
 
 
 def ring_azimuths(n: int, arc_deg: float, start_deg: float) -> np.ndarray:

@@ -7,7 +7,7 @@ lengths are given in centimetres and converted to the bundle's units.
 
 Ground truth stays exact.  A perturbation that keeps every mask id's meaning (depth
 noise, holes, pose errors, erosion/dilation, dropped masks) leaves the ground-truth mode
-as it is.  One that creates or fuses ids (splits, merges, relabelling) converts the
+as it is.  One that creates or fuses ids (splits, merges) converts the
 bundle to ``ground_truth = "mapped"``: each view's ``instance_objects`` maps its new ids
 to the objects they came from (a merged mask maps to the object owning most of its
 pixels).  New ids are fresh per view (above the view's largest id), so an id says
@@ -41,7 +41,6 @@ __all__ = [
     "merge_touching",
     "morph_masks",
     "pose_error",
-    "relabel_ids",
     "split_masks",
     "spurious_blobs",
 ]
@@ -379,23 +378,6 @@ def _unfuse_lone_pieces(mask: np.ndarray, original: np.ndarray, fused_ids: np.nd
         restore = np.isin(pieces, lone)
         out[restore] = original[restore]
     return out
-
-
-def relabel_ids(bundle: SceneBundle, rng: np.random.Generator) -> SceneBundle:
-    """Every view's ids replaced by a random permutation of fresh ids (1..n per view).
-
-    The partition of every view is unchanged; only the id values move, so a method
-    that uses no ground truth must give the same partition on the result.
-    """
-    views = _image_views(bundle)
-    masks, tables = [], []
-    for v in views:
-        table = _truth_table(bundle, v)
-        ids = _present_ids(v.mask)
-        fresh = rng.permutation(ids.size) + 1
-        masks.append(_remap(v.mask, ids, fresh) if ids.size else v.mask)
-        tables.append(None if table is None else {int(f): table[int(i)] for i, f in zip(ids, fresh) if int(i) in table})
-    return _with_masks(bundle, masks, tables)
 
 
 def _largest_object(bundle: SceneBundle, views: list[View]) -> int:

@@ -3,7 +3,7 @@
 * :mod:`.dataset` - bundles -> prepared voxel scenes + per-voxel targets, cached as ``.npz``.
 * :mod:`.losses` - discriminative + prototypical + graph loss on ragged batches.
 * :mod:`.trainer` - Adam loop, validation through ``assign()``, checkpoints, model export.
-* :mod:`.model_files` - start from a model file (``--init``), re-export one with an amended card.
+* :mod:`.model_files` - start from a model file (``--init``).
 """
 
 from typing import TYPE_CHECKING
