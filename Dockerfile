@@ -12,6 +12,7 @@ COPY scripts/install-runtime.sh scripts/
 COPY shadowcorr shadowcorr
 COPY service service
 COPY clients clients
+COPY batch batch
 # The package data carries the default model (shadowcorr/models/default.safetensors).
 RUN TORCH_INDEX_URL="${TORCH_INDEX_URL}" bash scripts/install-runtime.sh /opt/venv
 

@@ -5,13 +5,13 @@ dataset (the discovery of ``shadowcorr-client upload-dataset``), runs the librar
 ``prepare`` -> ``embed`` -> ``assign`` on each, and appends one JSON line per scene to a
 results file in the ``upload-dataset`` record shape, resumable.  Two engines:
 
-* ``local`` -- a process pool on this machine (:mod:`batch.local`);
+* ``local`` -- a process pool on this machine (:mod:`shadowcorr_batch.local`);
 * ``ray`` -- a Ray Data pipeline on a local Ray instance or a cluster
-  (:mod:`batch.ray_engine`; optional extra ``pip install "shadowcorr[ray]"``).
+  (:mod:`shadowcorr_batch.ray_engine`; optional extra ``pip install "shadowcorr[ray]"``).
 
 ::
 
-    from batch import BatchOptions, run_batch
+    from shadowcorr_batch import BatchOptions, run_batch
 
     run = run_batch("datasets/field7", "out/field7.jsonl", BatchOptions(engine="ray", workers=2))
     print(run.summary)

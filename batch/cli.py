@@ -67,7 +67,7 @@ def options_from_args(args: argparse.Namespace) -> "BatchOptions":
 def run_batch_command(args: argparse.Namespace) -> int:
     """Entry point of ``shadowcorr batch``; returns the exit status (1 if a scene failed, 130 if interrupted by
     Ctrl-C, 143 if stopped by SIGTERM)."""
-    from clients.records import format_summary
+    from shadowcorr_client.records import format_summary
     from tqdm import tqdm
 
     from .runner import describe_plan, print_failures, run_batch

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Iterable, Iterator
 from .stages import SceneTask, process_model, run_scenes, single_thread_numerics
 
 if TYPE_CHECKING:
-    from clients.records import UploadRecord
+    from shadowcorr_client.records import UploadRecord
 
 __all__ = ["run_local"]
 

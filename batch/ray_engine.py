@@ -14,7 +14,7 @@ Two plans, chosen by ``plan`` (``--ray-plan``; ``auto`` takes ``fused`` on CPU a
 
 ``fused`` is the local engine's design on Ray: whole scenes are tasks (two a task, see
 ``_SCENES_PER_FUSED_TASK``), and each Ray worker process loads the model once
-(:func:`batch.stages.process_model`) and keeps it, as Ray keeps its task workers warm
+(:func:`shadowcorr_batch.stages.process_model`) and keeps it, as Ray keeps its task workers warm
 across tasks and runs.  On CPU this is the faster plan (``benchmarks/bench_batch.py``):
 the network is about a quarter of a scene's CPU time and gains nothing from batching there, a
 CPU actor is one more process importing torch in every run (about 5 CPU seconds, as
@@ -37,7 +37,7 @@ into a JSON line, which is all the driver receives.
 
 Every task and actor runs with one OpenMP / BLAS thread (``runtime_env`` environment
 variables, so libraries loaded later start that way too, plus
-:func:`batch.stages.single_thread_numerics` for those loaded already), as the local
+:func:`shadowcorr_batch.stages.single_thread_numerics` for those loaded already), as the local
 engine's workers do: one scene per core.
 
 Ray is an optional dependency (``pip install "shadowcorr[ray]"``); nothing here imports
@@ -57,7 +57,7 @@ from .ray_watchdog import start_watchdog, stop_watchdog
 from .stages import SceneTask, embed_tasks, finish_task, prepare_task, process_model, run_scenes, single_thread_numerics
 
 if TYPE_CHECKING:
-    from clients.records import UploadRecord
+    from shadowcorr_client.records import UploadRecord
 
 __all__ = ["run_ray", "import_ray", "resolve_plan", "RAY_MISSING", "RAY_PLANS"]
 
@@ -152,14 +152,14 @@ def run_ray(
     """Run every task on Ray Data; yield each record as soon as its scene is done.
 
     Without ``address`` a local Ray instance is started with ``workers`` CPUs (and shut
-    down at the end, or by :mod:`batch.ray_watchdog` if this process dies first); with
+    down at the end, or by :mod:`shadowcorr_batch.ray_watchdog` if this process dies first); with
     one (``auto``, ``ray://host:10001``, ``host:6379``) the run joins that cluster, whose
     nodes need shadowcorr installed.  ``plan`` picks the pipeline (module docstring).
     With ``staged``, ``actors`` network actors hold the model, each taking up to
     ``batch_size`` prepared scenes per forward pass, with one GPU each when ``device`` is
     ``cuda``; methods without a network always run ``fused``.
     """
-    from clients.records import UploadRecord
+    from shadowcorr_client.records import UploadRecord
 
     if actors < 1:
         raise ValueError(f"actors must be >= 1, got {actors}")

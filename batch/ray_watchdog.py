@@ -28,7 +28,7 @@ import subprocess
 import sys
 from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:  # imported by the watchdog only: batch.ray_engine, which imports this module, must import without Ray
+if TYPE_CHECKING:  # imported by the watchdog only: shadowcorr_batch.ray_engine, which imports this module, must import without Ray
     import psutil
 
 __all__ = ["start_watchdog", "stop_watchdog"]
@@ -57,7 +57,7 @@ def stop_watchdog(watchdog: subprocess.Popen[bytes]) -> None:
 
 def _is_ray_process(proc: "psutil.Process", ray_dir: str) -> bool:
     """A process of Ray's (its binaries and scripts, or a worker or agent titled ``ray::...``), not
-    any other child a program calling :func:`batch.ray_engine.run_ray` may have."""
+    any other child a program calling :func:`shadowcorr_batch.ray_engine.run_ray` may have."""
     import psutil
 
     try:

@@ -2,7 +2,7 @@
 append one JSON line per finished scene, and summarise.
 
 The results file is the one ``shadowcorr-client upload-dataset`` writes (same record
-shape, same reader and writer from :mod:`clients.records`): each line is written and
+shape, same reader and writer from :mod:`shadowcorr_client.records`): each line is written and
 flushed as soon as its scene finishes, so an interrupted run keeps every finished scene
 and running the same command again does only the rest (a ``failed`` scene is tried
 again; its new line supersedes the old one).
@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, Literal, Sequence
 
-from clients.dataset import SceneSource, discover_scenes
-from clients.records import RecordWriter, UploadRecord, UploadSummary, read_records, summarize_records
+from shadowcorr_client.dataset import SceneSource, discover_scenes
+from shadowcorr_client.records import RecordWriter, UploadRecord, UploadSummary, read_records, summarize_records
 from shadowcorr.config import NETWORK_METHODS, ShadowCorrConfig
 
 from .stages import SceneTask

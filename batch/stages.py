@@ -29,8 +29,8 @@ from shadowcorr.result import ModelInfo
 from shadowcorr.stages import VoxelScene
 
 if TYPE_CHECKING:
-    from clients.dataset import SceneSource
-    from clients.records import UploadRecord
+    from shadowcorr_client.dataset import SceneSource
+    from shadowcorr_client.records import UploadRecord
     from shadowcorr.nn import Model
 
 __all__ = ["SceneTask", "prepare_task", "embed_tasks", "finish_task", "run_scenes", "process_model", "error_dict",
@@ -122,7 +122,7 @@ def embed_tasks(model: "Model | None", tasks: Sequence[SceneTask]) -> list[Scene
 
 def finish_task(task: SceneTask) -> "UploadRecord":
     """Cluster and label (the library's ``assign``) and turn the outcome into a record."""
-    from clients.records import UploadRecord
+    from shadowcorr_client.records import UploadRecord
 
     source = str(task.source.path)
     if task.error is None:

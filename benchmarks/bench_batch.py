@@ -28,7 +28,7 @@ starts its actors afresh: Ray Data ends them with the run).  Per engine it print
 
 ``--parent-network`` also measures (once, cold) the local variant where workers prepare
 and assign and the parent runs the network batched over the prepared scenes (the design
-``batch.local`` was measured against and does not use).
+``shadowcorr_batch.local`` was measured against and does not use).
 
     python benchmarks/bench_batch.py                      # 50 scenes, 2 workers, 2 rounds, all engines
     python benchmarks/bench_batch.py --scenes 16 --repeats 3 --engines local ray-fused
@@ -49,10 +49,10 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
 from typing import Iterator
 
-from batch import BatchOptions, SceneTask, run_batch
-from batch.stages import embed_tasks, finish_task, prepare_task, single_thread_numerics
-from clients.dataset import discover_scenes
-from clients.records import RecordWriter, UploadRecord, read_records
+from shadowcorr_batch import BatchOptions, SceneTask, run_batch
+from shadowcorr_batch.stages import embed_tasks, finish_task, prepare_task, single_thread_numerics
+from shadowcorr_client.dataset import discover_scenes
+from shadowcorr_client.records import RecordWriter, UploadRecord, read_records
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL_SCENE = dict(
@@ -79,8 +79,8 @@ def _parent_network_records(scenes: Path, workers: int, batch_size: int) -> Iter
     model = load_model()
     config = ShadowCorrConfig()
     queue = [SceneTask(source=s, config=config) for s in discover_scenes(scenes)]
-    context = mp.get_context("forkserver")  # as batch.local does
-    context.set_forkserver_preload(["batch.stages"])
+    context = mp.get_context("forkserver")  # as shadowcorr_batch.local does
+    context.set_forkserver_preload(["shadowcorr_batch.stages"])
     with ProcessPoolExecutor(workers, mp_context=context, initializer=single_thread_numerics) as pool:
         preparing = {pool.submit(prepare_task, t) for t in queue}
         finishing: set = set()
@@ -194,7 +194,7 @@ def main() -> None:
     load_before = os.getloadavg()
     ray_start_s = 0.0
     if any(e.startswith("ray") for e in args.engines):
-        from batch.ray_engine import import_ray
+        from shadowcorr_batch.ray_engine import import_ray
 
         ray = import_ray()
         t0 = time.perf_counter()

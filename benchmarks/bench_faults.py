@@ -1,6 +1,6 @@
 """Fault benchmark: hostile and broken clients against a real server on 127.0.0.1.
 
-Starts ``python -m service`` (default settings except ``--workers`` and a 2 s
+Starts ``python -m shadowcorr_service`` (default settings except ``--workers`` and a 2 s
 shutdown grace) and reproduces, printing what the server held:
 
 1. **stalled uploads**: 32 connections declare 1 MB and send 100 bytes; latency of
@@ -58,7 +58,7 @@ SAMPLE_DIR = ROOT / "examples" / "ue_sample"
 
 # --------------------------------------------------------------------------- helpers
 def tiny_scene() -> tuple[bytes, dict, dict[str, bytes]]:
-    from service.synthetic import synthetic_bundle
+    from shadowcorr_service.synthetic import synthetic_bundle
 
     return zipped_bundle(synthetic_bundle(n_rocks=3, n_views=3))
 
@@ -180,7 +180,7 @@ def bench_stalled(server: ServerProcess, body: bytes, n: int) -> None:
 
 def confetti_scene(n_blobs: int = 1900) -> bytes:
     """One view whose mask holds ``n_blobs`` separate ~60-pixel blobs, all with valid depth."""
-    from service.synthetic import synthetic_bundle
+    from shadowcorr_service.synthetic import synthetic_bundle
 
     bundle = synthetic_bundle(n_rocks=3, n_views=3, width=640, height=480)
     view = bundle.views[0]

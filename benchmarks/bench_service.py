@@ -1,6 +1,6 @@
 """Load test of the HTTP service: latency, throughput and batching under N concurrent clients.
 
-Starts a server (``python -m service``) or uses a running one (``--url``), then for each
+Starts a server (``python -m shadowcorr_service``) or uses a running one (``--url``), then for each
 client count N (default 1, 4, 16) runs N concurrent clients that each send the same
 scene ``--requests`` times, back to back.  Prints per N: p50 / p95 / max latency,
 throughput (scenes/s), mean network batch size (from ``/metrics``), the latency of
@@ -51,7 +51,7 @@ def build_scene(args: argparse.Namespace) -> tuple[bytes, str]:
     from shadowcorr.io import write_bundle_archive
 
     if args.synthetic or not SAMPLE_DIR.is_dir():
-        from service.synthetic import synthetic_bundle
+        from shadowcorr_service.synthetic import synthetic_bundle
 
         bundle, what = synthetic_bundle(n_rocks=4, n_views=3, width=200, height=150), "synthetic 4 rocks x 3 views"
     else:

@@ -2,7 +2,7 @@
 
 ::
 
-    from clients import ShadowCorrClient
+    from shadowcorr_client import ShadowCorrClient
 
     with ShadowCorrClient("http://127.0.0.1:8000", token=None) as client:
         result = client.correspond("scene_bundle/", metrics=True)   # -> shadowcorr.result.Result
@@ -10,7 +10,7 @@
 
 Importing this package is light: it needs ``httpx`` only, never torch or the server.
 ``pip install ./clients`` installs the client alone (httpx and tqdm: no torch, numpy or
-pydantic); results then come back as :class:`clients.result.ResultView`, and converting
+pydantic); results then come back as :class:`shadowcorr_client.result.ResultView`, and converting
 Unreal-layout folders or ROS bags locally says which ``pip install`` adds the library.
 With the library installed, results are :class:`shadowcorr.result.Result` and packing an
 in-memory ``SceneBundle`` or converting data imports the matching parts of :mod:`shadowcorr`.

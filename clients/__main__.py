@@ -1,4 +1,4 @@
-"""``python -m clients`` = ``shadowcorr-client``."""
+"""``python -m shadowcorr_client`` = ``shadowcorr-client``."""
 
 import sys
 

@@ -2,11 +2,11 @@
 
 Both keep one ``httpx`` connection pool for their lifetime (use them as context
 managers, or call ``close``), send the bearer token when given, apply the retry
-policy of :mod:`clients.retry`, and turn every failure into a
-:class:`~clients.errors.ShadowCorrError`.  Successful ``/correspond`` answers are
+policy of :mod:`shadowcorr_client.retry`, and turn every failure into a
+:class:`~shadowcorr_client.errors.ShadowCorrError`.  Successful ``/correspond`` answers are
 validated into :class:`shadowcorr.result.Result`, the model the library itself returns,
 when the library is installed; a client installed alone returns a
-:class:`clients.result.ResultView` with the same attributes.
+:class:`shadowcorr_client.result.ResultView` with the same attributes.
 
 The request/response handling lives in :class:`_Protocol`, shared by both clients, so
 the two can only differ in *how* they wait (``time.sleep`` vs ``asyncio.sleep``).
@@ -225,7 +225,7 @@ class ShadowCorrClient:
         Per-request timeouts (a float applies to connect, read, write and pool alike);
         default: 10 s to connect, 300 s to read.
     retry : RetryPolicy, optional
-        Retries on connection failures, 502 and 503 (see :mod:`clients.retry`).
+        Retries on connection failures, 502 and 503 (see :mod:`shadowcorr_client.retry`).
     on_retry : callable, optional
         Called with a :class:`RetryEvent` before each retry (progress displays, counters).
     transport : httpx.BaseTransport, optional

@@ -1,7 +1,7 @@
 """ShadowCorr HTTP inference service (FastAPI + uvicorn).
 
 ``create_app(settings)`` builds the ASGI app; ``serve(settings)`` runs it under uvicorn;
-``service.cli`` provides ``shadowcorr serve``.  Settings come from ``SHADOWCORR_*``
+``shadowcorr_service.cli`` provides ``shadowcorr serve``.  Settings come from ``SHADOWCORR_*``
 environment variables (``ServiceSettings``).  Heavy modules (torch, the engine) are
 imported only when an app is created, so ``import service`` stays cheap.
 """

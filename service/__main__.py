@@ -1,10 +1,10 @@
-"""``python -m service [flags]``: run the HTTP service (see ``service.cli``)."""
+"""``python -m shadowcorr_service [flags]``: run the HTTP service (see ``shadowcorr_service.cli``)."""
 
 # Guarded: spawned worker processes import the main module as "__mp_main__", and must not
 # start a second server.
 if __name__ == "__main__":
     import sys
 
-    from service.cli import main
+    from shadowcorr_service.cli import main
 
     sys.exit(main())

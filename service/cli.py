@@ -2,7 +2,7 @@
 
 The integrator wires it into the main CLI with::
 
-    from service.cli import add_serve_parser, run_serve
+    from shadowcorr_service.cli import add_serve_parser, run_serve
     add_serve_parser(subparsers)          # adds the "serve" sub-command
     ...
     if args.command == "serve": return run_serve(args)
@@ -74,7 +74,7 @@ def add_serve_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m service", description="Run the ShadowCorr HTTP service.")
+    p = argparse.ArgumentParser(prog="python -m shadowcorr_service", description="Run the ShadowCorr HTTP service.")
     _add_arguments(p)
     return p
 

@@ -2,7 +2,7 @@
 
 Everything here executes in a *spawned* worker process (see ``workers.py``), so these
 are module-level functions of plain picklable arguments.  Input errors leave as
-:class:`~service.errors.JobError` (status, code, message, problems), which survives
+:class:`~shadowcorr_service.errors.JobError` (status, code, message, problems), which survives
 pickling intact; anything unexpected is logged here, with its traceback, and becomes
 a 500 without internals.
 

@@ -1,4 +1,4 @@
-"""Run the service under uvicorn: ``serve(settings)`` (used by ``python -m service`` and ``shadowcorr serve``)."""
+"""Run the service under uvicorn: ``serve(settings)`` (used by ``python -m shadowcorr_service`` and ``shadowcorr serve``)."""
 
 from __future__ import annotations
 

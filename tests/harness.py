@@ -1,6 +1,6 @@
 """The one test harness of the tests and the benchmarks: a real service process, free ports, zip bytes.
 
-:class:`ServerProcess` runs ``python -m service`` on a free loopback port in its own
+:class:`ServerProcess` runs ``python -m shadowcorr_service`` on a free loopback port in its own
 process group.  Only the standard library and httpx at import time; ``psutil`` (a dev
 dependency) is imported when worker processes are looked up.  The benchmarks import this
 module as ``tests.harness`` (they put the repository root on ``sys.path``).
@@ -50,13 +50,15 @@ def free_port() -> int:
 
 
 class ServerProcess:
-    """``python -m service`` as a subprocess; ``start()`` waits until ``/health`` is 200.
+    """``python -m shadowcorr_service`` as a subprocess; ``start()`` waits until ``/health`` is 200.
 
     ``args`` are extra command-line flags (``["--workers", "2"]``); ``env`` adds
     environment variables.  ``SHADOWCORR_*`` variables of the calling environment are
     dropped, so the server runs with exactly the settings given here.  ``token`` goes into
     :attr:`headers`; with ``auth`` the server is also started requiring it.  ``start()`` is
     ``launch()`` then ``wait_ready()``: launch several servers first to start them at once.
+    ``command`` replaces ``python -m shadowcorr_service`` (e.g. ``shadowcorr serve``); ``cwd``
+    is the working directory (the repository by default).
     """
 
     def __init__(
@@ -68,6 +70,8 @@ class ServerProcess:
         log_path: str | Path | None = None,
         token: str | None = None,
         auth: bool = False,
+        command: Sequence[str] | None = None,
+        cwd: str | Path | None = None,
     ) -> None:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -75,6 +79,8 @@ class ServerProcess:
         self.env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWCORR_")}
         self.env.update(env or {})
         self.python = python or sys.executable
+        self.command = list(command) if command else [self.python, "-m", "shadowcorr_service"]
+        self.cwd = Path(cwd) if cwd else REPO_ROOT
         self.token = token
         if auth and token:
             self.env["SHADOWCORR_AUTH_TOKEN"] = token
@@ -100,9 +106,9 @@ class ServerProcess:
 
     def launch(self) -> None:
         """Start the process (in a session of its own, so that ``stop`` can end its workers too)."""
-        cmd = [self.python, "-m", "service", "--host", "127.0.0.1", "--port", str(self.port), *self.args]
+        cmd = [*self.command, "--host", "127.0.0.1", "--port", str(self.port), *self.args]
         with open(self.log_path, "wb") as log:
-            self.proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=self.env, stdout=log, stderr=subprocess.STDOUT,
+            self.proc = subprocess.Popen(cmd, cwd=self.cwd, env=self.env, stdout=log, stderr=subprocess.STDOUT,
                                          start_new_session=True)
 
     def wait_ready(self, timeout: float = 300.0) -> "ServerProcess":

@@ -41,7 +41,7 @@ def peak_memory_growth(pid: int, send: Callable[[], T]) -> tuple[T, int]:
 def checkerboard_mask_bundle(width: int = 1920, height: int = 1080) -> tuple[bytes, str]:
     """A 3-view scene whose first mask is one id in a checkerboard: every pixel its own run,
     all joined through their corners (~1 M runs at 1080p, a few kB of PNG)."""
-    from service.synthetic import synthetic_bundle
+    from shadowcorr_service.synthetic import synthetic_bundle
 
     bundle = synthetic_bundle(n_rocks=3, n_views=3, width=width, height=height)
     view = bundle.views[0]
@@ -100,7 +100,7 @@ def many_empty_pixels_bundle(views: int = 16, side: int = 4096) -> tuple[bytes, 
 def corrupt_deflate_bundle() -> tuple[bytes, str]:
     """A valid small bundle whose first deflated member starts with a block of the reserved type
     (BFINAL 1, BTYPE 11): the archive's directory is intact, the member fails while inflating."""
-    from service.synthetic import synthetic_bundle
+    from shadowcorr_service.synthetic import synthetic_bundle
 
     body = bytearray(zipped_bundle(synthetic_bundle(n_rocks=3, n_views=3))[0])
     with zipfile.ZipFile(io.BytesIO(bytes(body))) as zf:

@@ -157,10 +157,10 @@ def test_ray_engine_without_ray_names_the_extra(dataset, tmp_path):
 def test_cli_offers_every_engine_and_ray_plan_the_runner_knows():
     import argparse
 
-    from batch.cli import add_batch_parser
-    from batch.runner import ENGINES
+    from shadowcorr_batch.cli import add_batch_parser
+    from shadowcorr_batch.runner import ENGINES
 
-    from batch.ray_engine import RAY_PLANS, resolve_plan
+    from shadowcorr_batch.ray_engine import RAY_PLANS, resolve_plan
 
     parser = add_batch_parser(argparse.ArgumentParser().add_subparsers())
     choices = {a.dest: tuple(a.choices) for a in parser._actions if a.choices}
@@ -176,7 +176,7 @@ def test_batch_runs_each_scene_on_one_thread_unless_asked():
     # oversubscribe them.  A single scene (`correspond`) gets every core by default.
     import argparse
 
-    from batch.cli import add_batch_parser, options_from_args
+    from shadowcorr_batch.cli import add_batch_parser, options_from_args
     from shadowcorr.cli import build_parser, config_from_args
 
     parser = add_batch_parser(argparse.ArgumentParser().add_subparsers())

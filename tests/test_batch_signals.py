@@ -124,7 +124,7 @@ def _check_started(engine: str, descendants: Descendants) -> None:
 
 @pytest.mark.parametrize("engine", ["local", "ray"])
 def test_sigterm_stops_the_run_keeps_its_results_and_leaves_no_process(engine, dataset, tmp_path):
-    from batch.runner import BatchOptions, plan_batch
+    from shadowcorr_batch.runner import BatchOptions, plan_batch
 
     status, stderr, out, descendants = _signal_mid_run(engine, signal.SIGTERM, dataset, tmp_path)
     _check_started(engine, descendants)

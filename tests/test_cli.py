@@ -12,8 +12,8 @@ import threading
 
 import pytest
 
-from clients.cli import build_parser as client_parser
-from clients.cli import main as client_main
+from shadowcorr_client.cli import build_parser as client_parser
+from shadowcorr_client.cli import main as client_main
 from .harness import ServerProcess
 from shadowcorr.cli import EVAL_COLUMNS, build_parser, main
 from shadowcorr.io import write_bundle

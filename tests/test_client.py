@@ -1,6 +1,6 @@
 """The client and ``shadowcorr-client`` against the real service on loopback.
 
-Two servers run as subprocesses (``python -m service``, one worker each, to spare the CPU):
+Two servers run as subprocesses (``python -m shadowcorr_service``, one worker each, to spare the CPU):
 
 * ``server`` -- token-protected, default queue: the API, the CLI, dataset uploads, resuming;
 * ``tiny_server`` -- one request admitted at a time (``queue_size=1``, ``Retry-After: 1``): 503
@@ -27,7 +27,7 @@ from typing import Iterator
 import numpy as np
 import pytest
 
-from clients import (
+from shadowcorr_client import (
     NO_RETRY,
     AsyncShadowCorrClient,
     ClientError,
@@ -36,7 +36,7 @@ from clients import (
     ShadowCorrClient,
     read_records,
 )
-from clients.cli import main as cli_main
+from shadowcorr_client.cli import main as cli_main
 from shadowcorr.result import Result
 
 from .harness import ServerProcess
@@ -131,7 +131,7 @@ def cli_subprocess(server: ServerProcess, *args: str, out: Path) -> subprocess.P
     env["SHADOWCORR_SERVER"] = server.url  # the environment variables work as well as the flags
     if server.token:
         env["SHADOWCORR_TOKEN"] = server.token
-    return subprocess.Popen([sys.executable, "-m", "clients", *args], cwd=REPO, env=env, text=True,
+    return subprocess.Popen([sys.executable, "-m", "shadowcorr_client", *args], cwd=REPO, env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
 

@@ -28,7 +28,7 @@ from .scenes import sphere_scene
 pytestmark = pytest.mark.slow
 
 TOKEN = "standalone-token-not-secret"
-HEAVY = ("torch", "numpy", "scipy", "pydantic", "fastapi", "shadowcorr", "service", "PIL")
+HEAVY = ("torch", "numpy", "scipy", "pydantic", "fastapi", "shadowcorr", "shadowcorr_service", "PIL")
 
 
 def _site_packages(venv: Path) -> Path:
@@ -76,7 +76,7 @@ def test_installs_only_light_pure_python_packages(venv) -> None:
     print(f"standalone client install: {size_mb:.1f} MB in site-packages", file=sys.stderr)
     assert size_mb < 30
     assert not list(site.rglob("*.so")), "a compiled extension is not pure Python"
-    probe = subprocess.run([str(venv / "bin" / "python"), "-c", "import clients, sys; import shadowcorr"],
+    probe = subprocess.run([str(venv / "bin" / "python"), "-c", "import shadowcorr_client, sys; import shadowcorr"],
                            cwd=venv, capture_output=True, text=True, env=_clean_env())
     assert "No module named 'shadowcorr'" in probe.stderr  # clients imports; the library is not there
 

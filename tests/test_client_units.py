@@ -17,7 +17,7 @@ import httpx
 import numpy as np
 import pytest
 
-from clients import (
+from shadowcorr_client import (
     NO_RETRY,
     BundleInputError,
     BundleUpload,
@@ -30,10 +30,10 @@ from clients import (
     discover_scenes,
     parse_retry_after,
 )
-from clients.client import correspond_params, error_from_response
-from clients.records import RecordWriter, UploadRecord, format_summary, percentile, read_records, summarize_records
-from clients.retry import is_retryable_exception
-from clients.request_body import archive_content_type
+from shadowcorr_client.client import correspond_params, error_from_response
+from shadowcorr_client.records import RecordWriter, UploadRecord, format_summary, percentile, read_records, summarize_records
+from shadowcorr_client.retry import is_retryable_exception
+from shadowcorr_client.request_body import archive_content_type
 
 from .harness import free_port
 from .paths import REPO
@@ -51,8 +51,8 @@ def small_scene(n: int = 2, seed: int = 0):
 
 # --------------------------------------------------------------------------- import weight
 def test_import_clients_does_not_import_torch_or_the_server():
-    code = ("import sys, clients, clients.cli; "
-            "bad = [m for m in ('torch', 'service', 'shadowcorr.nn', 'fastapi') if m in sys.modules]; "
+    code = ("import sys, shadowcorr_client, shadowcorr_client.cli; "
+            "bad = [m for m in ('torch', 'shadowcorr_service', 'shadowcorr.nn', 'fastapi') if m in sys.modules]; "
             "print(','.join(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
     assert out.stdout.strip() == ""
@@ -324,7 +324,7 @@ def test_summary_percentiles_and_metrics():
 
 
 def test_cli_usage_errors_exit_2(tmp_path):
-    from clients.cli import main
+    from shadowcorr_client.cli import main
 
     assert main(["correspond", str(tmp_path / "missing"), "--server", "http://127.0.0.1:9"]) == 2
     with pytest.raises(SystemExit) as info:
@@ -333,7 +333,7 @@ def test_cli_usage_errors_exit_2(tmp_path):
 
 
 def test_upload_to_an_unreachable_server_fails_fast_without_records(tmp_path, unused_port, capsys):
-    from clients.cli import main
+    from shadowcorr_client.cli import main
     from shadowcorr.io import write_bundle
 
     write_bundle(small_scene(), tmp_path / "data" / "a")

@@ -68,12 +68,12 @@ def test_runtime_stage_is_small_safe_and_observable():
 def test_the_image_needs_a_token_and_compose_gives_it_one_from_an_env_file(monkeypatch):
     import yaml
 
-    from service.settings import ServiceSettings
+    from shadowcorr_service.settings import ServiceSettings
 
     image_env = dict(re.findall(r"(SHADOWCORR_\w+)=(\S+)", dict(runtime_stage())["ENV"]))
     assert image_env["SHADOWCORR_HOST"] == "0.0.0.0"  # the container serves its network
     env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWCORR_")}
-    proc = subprocess.run([sys.executable, "-m", "service"], cwd=ROOT, capture_output=True, text=True, timeout=60,
+    proc = subprocess.run([sys.executable, "-m", "shadowcorr_service"], cwd=ROOT, capture_output=True, text=True, timeout=60,
                           env={**env, **image_env, "SHADOWCORR_PORT": "0"})
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "SHADOWCORR_AUTH_TOKEN" in proc.stderr and "SHADOWCORR_ALLOW_NO_AUTH=1" in proc.stderr, proc.stderr[-2000:]

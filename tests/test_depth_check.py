@@ -12,7 +12,7 @@ from shadowcorr.config import ShadowCorrConfig
 from shadowcorr.pipeline import prepare
 from shadowcorr.errors import DepthRangeError
 
-from service.synthetic import synthetic_bundle
+from shadowcorr_service.synthetic import synthetic_bundle
 
 
 def test_centimetre_scene_declared_in_metres_is_refused():

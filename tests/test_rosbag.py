@@ -374,7 +374,7 @@ def test_camera_option_is_parsed_strictly() -> None:
 
 
 def test_client_finds_bags_and_converts_them_with_the_camera_options(tmp_path) -> None:
-    from clients import BagOptions, discover_scenes
+    from shadowcorr_client import BagOptions, discover_scenes
 
     data = tmp_path / "data"
     write_scene_bag(data / "site" / "run_ros2", "sqlite3", [tiny_view()])

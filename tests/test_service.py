@@ -1,4 +1,4 @@
-"""HTTP service, end to end: a real ``python -m service`` process talked to over HTTP.
+"""HTTP service, end to end: a real ``python -m shadowcorr_service`` process talked to over HTTP.
 
 One server (2 workers, 200 ms batching window) serves the whole module; tests run in
 file order and the last one shuts it down gracefully.  Sample-scene requests are few:
@@ -65,7 +65,7 @@ def client(server):
 def synthetic():
     """A small valid scene: (zip bytes, manifest dict, files dict, local labels)."""
     from shadowcorr import correspond, load_bundle
-    from service.synthetic import synthetic_bundle
+    from shadowcorr_service.synthetic import synthetic_bundle
 
     zipped, manifest, files = zipped_bundle(synthetic_bundle(n_rocks=3, n_views=3))
     labels = correspond(load_bundle(zipped)).labels

@@ -38,7 +38,7 @@ def server():
 @pytest.fixture(scope="module")
 def tiny():
     """A very small valid scene as a zip (answers well within the 1 s timeout)."""
-    from service.synthetic import synthetic_bundle
+    from shadowcorr_service.synthetic import synthetic_bundle
 
     return zipped_bundle(synthetic_bundle(n_rocks=2, n_views=2, width=96, height=72))[0]
 
@@ -106,8 +106,8 @@ def test_overload_gets_503_and_slow_request_gets_504(server, tiny):
 
 
 def test_settings_from_env_and_flags(monkeypatch):
-    from service.cli import build_parser, settings_from_args
-    from service.settings import ServiceSettings
+    from shadowcorr_service.cli import build_parser, settings_from_args
+    from shadowcorr_service.settings import ServiceSettings
 
     monkeypatch.setenv("SHADOWCORR_WORKERS", "5")
     monkeypatch.setenv("SHADOWCORR_MAX_WAIT_MS", "25")
@@ -129,9 +129,9 @@ def test_bad_model_or_setting_fails_fast(tmp_path):
     env = {k: v for k, v in __import__("os").environ.items() if not k.startswith("SHADOWCORR_")}
     bad = tmp_path / "model.safetensors"
     bad.write_bytes(b"not a model")
-    r = subprocess.run([sys.executable, "-m", "service", "--port", "0", "--model", str(bad)], cwd=REPO_ROOT,
+    r = subprocess.run([sys.executable, "-m", "shadowcorr_service", "--port", "0", "--model", str(bad)], cwd=REPO_ROOT,
                        env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode != 0 and "model.safetensors" in r.stderr, r.stderr[-2000:]
-    r = subprocess.run([sys.executable, "-m", "service"], cwd=REPO_ROOT, env={**env, "SHADOWCORR_WORKERS": "zero"},
+    r = subprocess.run([sys.executable, "-m", "shadowcorr_service"], cwd=REPO_ROOT, env={**env, "SHADOWCORR_WORKERS": "zero"},
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "workers" in r.stderr, r.stderr[-2000:]

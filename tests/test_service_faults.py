@@ -76,7 +76,7 @@ def server(spool_dir):
 @pytest.fixture(scope="module")
 def tiny() -> tuple[bytes, dict, dict]:
     """A small valid scene: (zip bytes, manifest, files)."""
-    from service.synthetic import synthetic_bundle
+    from shadowcorr_service.synthetic import synthetic_bundle
 
     return zipped_bundle(synthetic_bundle(n_rocks=3, n_views=3))
 

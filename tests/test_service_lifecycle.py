@@ -55,7 +55,7 @@ def server(model_file):
 @pytest.fixture(scope="module")
 def tiny() -> tuple[bytes, dict, dict]:
     """A small valid scene: (zip bytes, manifest, files)."""
-    from service.synthetic import synthetic_bundle
+    from shadowcorr_service.synthetic import synthetic_bundle
 
     return zipped_bundle(synthetic_bundle(n_rocks=2, n_views=2, width=96, height=72))
 
@@ -169,7 +169,7 @@ def test_spool_directories_of_dead_servers_are_removed_at_start(tmp_path):
 # --------------------------------------------------------------------------- no open server by mistake
 def test_a_public_address_needs_a_token_or_an_explicit_opt_out(server):
     env = {k: v for k, v in os.environ.items() if not k.startswith("SHADOWCORR_")}
-    r = subprocess.run([sys.executable, "-m", "service", "--host", "0.0.0.0", "--port", "0"], cwd=REPO_ROOT,
+    r = subprocess.run([sys.executable, "-m", "shadowcorr_service", "--host", "0.0.0.0", "--port", "0"], cwd=REPO_ROOT,
                        env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr[-2000:]
     assert "SHADOWCORR_AUTH_TOKEN" in r.stderr and "SHADOWCORR_ALLOW_NO_AUTH=1" in r.stderr, r.stderr[-2000:]

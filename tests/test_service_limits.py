@@ -33,7 +33,7 @@ def server():
 
 @pytest.fixture(scope="module")
 def tiny() -> tuple[bytes, dict, dict]:
-    from service.synthetic import synthetic_bundle
+    from shadowcorr_service.synthetic import synthetic_bundle
 
     return zipped_bundle(synthetic_bundle(n_rocks=3, n_views=3))
 
