@@ -387,6 +387,50 @@ def test_zip_bomb_ratio_and_size_limits() -> None:
     expect_error(lambda: load_bundle(tgz, limits=BundleLimits(max_total_bytes=1024 * 1024)), "archive")
 
 
+class _ReadLog(io.BytesIO):
+    """An in-memory file that records the byte ranges read from it."""
+
+    def __init__(self, data: bytes) -> None:
+        super().__init__(data)
+        self.ranges: list[tuple[int, int]] = []
+
+    def read(self, size: int | None = -1) -> bytes:
+        start = self.tell()
+        data = super().read(size)
+        self.ranges.append((start, start + len(data)))
+        return data
+
+    def readinto(self, b) -> int:  # noqa: ANN001
+        start = self.tell()
+        n = super().readinto(b)
+        self.ranges.append((start, start + n))
+        return n
+
+
+@pytest.mark.parametrize("pad_first", [True, False])
+def test_members_the_manifest_does_not_name_are_never_read_from_a_plain_tar(pad_first) -> None:
+    # Before or after the manifest, an unnamed member's 1 MiB are seeked over, not read.
+    from shadowcorr.io._archives import read_archive
+
+    m, f = parts()
+    pad = ("pad.bin", bytes(range(256)) * 4096)
+    members = list(with_manifest(m, f).items())
+    data = tar_bytes([pad, *members] if pad_first else [*members, pad])
+    with tarfile.open(fileobj=io.BytesIO(data)) as tf:
+        info = tf.getmember("pad.bin")
+        pad_range = (info.offset_data, info.offset_data + info.size)
+    fh = _ReadLog(data)
+    files, skipped = read_archive(fh, len(data), BundleLimits())
+    assert skipped == ["pad.bin"] and set(files) == set(with_manifest(m, f))
+    touched = sum(min(b, pad_range[1]) - max(a, pad_range[0]) for a, b in fh.ranges
+                  if a < pad_range[1] and b > pad_range[0])
+    assert touched <= 1, fh.ranges  # tarfile reads a member's last byte to tell a truncated file
+    assert_same(make_bundle(), load_bundle(data))  # and it loads
+    # A gzip'd tar is one compressed stream: the member is decompressed on the way, never kept.
+    files, skipped = read_archive(io.BytesIO(tar_bytes([pad, *members], "w:gz")), len(data), BundleLimits())
+    assert skipped == ["pad.bin"] and set(files) == set(with_manifest(m, f))
+
+
 def test_too_many_files_and_bytes_in_upload() -> None:
     m, f = parts()
     expect_error(lambda: load_bundle_from_parts(m, f, limits=BundleLimits(max_files=2)), "files: 4 files; the limit is 2")

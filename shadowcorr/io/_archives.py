@@ -3,8 +3,10 @@
 Archives come from untrusted uploads.  Sizes are checked before decompressing (member
 count, declared sizes, compression ratio) and the bytes actually decompressed are capped
 too, because headers can lie; member names must be relative and stay inside the bundle;
-tar links, devices and fifos are refused; only the manifest and the files it names are
-decompressed.  :func:`read_archive` returns the members, :func:`split_root` finds the
+tar links, devices and fifos are refused.  Of a zip and of an uncompressed tar only the
+manifest and the files it names are read (and decompressed); a compressed tar is one
+compressed stream, so every member is decompressed on the way through it (capped), and
+only the manifest and the files it names are kept.  :func:`read_archive` returns the members, :func:`split_root` finds the
 manifest at the root or in one top-level folder.
 """
 
@@ -19,6 +21,7 @@ import stat
 import tarfile
 import zipfile
 import zlib
+from collections import Counter
 from typing import IO, Any
 
 from ..errors import BundleError, Problem
@@ -144,12 +147,7 @@ def _read_zip(
                 problems.append(Problem(loc=f"archive[{info.filename!r}]", msg="encrypted members are not supported"))
                 continue
             wanted.append((name, info))
-        names = [n for n, _ in wanted]
-        dups = sorted({n for n in names if names.count(n) > 1})
-        if dups:
-            problems.append(Problem(loc="archive", msg=f"duplicate members {dups[:5]}"))
-        if len(wanted) > limits.max_files:
-            problems.append(Problem(loc="archive", msg=f"archive holds {len(wanted)} files; the limit is {limits.max_files}"))
+        problems += _listing_problems([n for n, _ in wanted], limits)
         if problems:
             return {}, problems, []
         named = _Named(limits)
@@ -188,6 +186,16 @@ def _read_zip(
     return files, problems, skipped
 
 
+def _listing_problems(names: list[str], limits: BundleLimits) -> list[Problem]:
+    """Duplicate names and too many files, from an archive's listing."""
+    counts = Counter(names)
+    dups = sorted(n for n, c in counts.items() if c > 1)
+    out = [Problem(loc="archive", msg=f"duplicate members {dups[:5]}")] if dups else []
+    if len(names) > limits.max_files:
+        out.append(Problem(loc="archive", msg=f"archive holds {len(names)} files; the limit is {limits.max_files}"))
+    return out
+
+
 def _zip_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, max_bytes: int) -> tuple[bytes, Problem | None]:
     """At most ``max_bytes`` of one member, or the problem that stopped its extraction."""
     try:
@@ -221,8 +229,10 @@ def _size_problems(n_files: int, declared: int, compressed: int, limits: BundleL
 def _read_tar(
     fh: IO[bytes], kind: str, archive_size: int, limits: BundleLimits
 ) -> tuple[dict[str, bytes], list[Problem], list[str]]:
-    """Like ``_read_zip``; a tar stream can only be skipped through, so members after the
-    manifest that it does not name are passed over unkept (the decompressed stream stays capped)."""
+    """Like ``_read_zip``, for a compressed tar (or an unseekable one): the stream can only be
+    read through, so members it holds before the manifest are kept until the manifest says
+    whether it names them, and members after it that it does not name are decompressed and
+    passed over unkept (the decompressed stream stays capped)."""
     problems: list[Problem] = []
     files: dict[str, bytes] = {}
     named = _Named(limits)
@@ -247,18 +257,10 @@ def _read_tar(
                 if entries > max_entries:
                     problems.append(Problem(loc="archive", msg=f"archive has more than {max_entries} entries"))
                     break
-                if _SKIP.search(m.name) or m.isdir():
-                    continue
-                where = f"archive[{m.name!r}]"
-                name = _member_name(m.name, problems)
+                name = _tar_member(m, problems)
                 if name is None:
                     continue
-                if m.issym() or m.islnk():
-                    problems.append(Problem(loc=where, msg=f"links are not allowed (-> {m.linkname!r})"))
-                    continue
-                if not m.isreg() or m.issparse():
-                    problems.append(Problem(loc=where, msg="only regular files are allowed (device, fifo or sparse member)"))
-                    continue
+                where = f"archive[{m.name!r}]"
                 declared += m.size  # skipped members count too: the stream decompresses them all the same
                 bomb = declared > limits.ratio_check_min_bytes and declared / max(archive_size, 1) > limits.max_compression_ratio
                 if len(files) + 1 > limits.max_files or declared > limits.max_total_bytes or bomb:
@@ -288,6 +290,70 @@ def _read_tar(
     return files, problems, skipped + early
 
 
+def _tar_member(m: tarfile.TarInfo, problems: list[Problem]) -> str | None:
+    """The normalised name of a tar member a bundle may use; ``None`` for a directory or macOS
+    litter (skipped) and for a link, special file or unsafe name (problem recorded)."""
+    if _SKIP.search(m.name) or m.isdir():
+        return None
+    where = f"archive[{m.name!r}]"
+    name = _member_name(m.name, problems)
+    if name is None:
+        return None
+    if m.issym() or m.islnk():
+        problems.append(Problem(loc=where, msg=f"links are not allowed (-> {m.linkname!r})"))
+        return None
+    if not m.isreg() or m.issparse():
+        problems.append(Problem(loc=where, msg="only regular files are allowed (device, fifo or sparse member)"))
+        return None
+    return name
+
+
+def _read_plain_tar(fh: IO[bytes], limits: BundleLimits) -> tuple[dict[str, bytes], list[Problem], list[str]]:
+    """Like ``_read_zip``, for an uncompressed tar in a seekable file: the headers are listed
+    first (tarfile seeks over each member's data), then only the manifest and the members it
+    names are read; the others are never read at all."""
+    problems: list[Problem] = []
+    files: dict[str, bytes] = {}
+    max_entries = 4 * limits.max_files + 16
+    try:
+        with tarfile.open(fileobj=fh, mode="r:") as tf:
+            listed: list[tuple[str, tarfile.TarInfo]] = []
+            for entries, m in enumerate(tf, start=1):
+                if entries > max_entries:
+                    return {}, [Problem(loc="archive", msg=f"archive has more than {max_entries} entries")], []
+                name = _tar_member(m, problems)
+                if name is not None:
+                    listed.append((name, m))
+            problems += _listing_problems([n for n, _ in listed], limits)
+            if problems:
+                return {}, problems, []
+            named = _Named(limits)
+            manifests = [(n, m) for n, m in listed if _is_manifest(n)]
+            if len(manifests) == 1:  # several (or none): the loader says so, from the candidates alone
+                name, m = manifests[0]
+                named.learn(name, _tar_data(tf, m, limits.max_manifest_bytes + 1))
+            else:
+                named.names = set()
+            skipped = [n for n, _ in listed if not named.wants(n)]
+            wanted = [(n, m) for n, m in listed if named.wants(n)]
+            declared = sum(m.size for _, m in wanted)
+            if declared > limits.max_total_bytes:
+                return {}, _size_problems(0, declared, declared, limits), []
+            for name, m in wanted:
+                data = _tar_data(tf, m, m.size)
+                if len(data) != m.size:
+                    return {}, [Problem(loc=f"archive[{m.name!r}]", msg="member is truncated")], []
+                files[name] = data
+    except (tarfile.TarError, OSError, EOFError, ValueError) as e:
+        return {}, [Problem(loc="archive", msg=f"not a readable .tar archive: {e}")], []
+    return files, problems, skipped
+
+
+def _tar_data(tf: tarfile.TarFile, m: tarfile.TarInfo, max_bytes: int) -> bytes:
+    ex = tf.extractfile(m)
+    return ex.read(max_bytes) if ex is not None else b""
+
+
 def read_archive(fh: IO[bytes], archive_size: int, limits: BundleLimits) -> tuple[dict[str, bytes], list[str]]:
     """The manifest and the members it names of a .zip / .tar(.gz|.bz2|.xz), bounded by ``limits``,
     and the names of the members left undecompressed."""
@@ -302,6 +368,8 @@ def read_archive(fh: IO[bytes], archive_size: int, limits: BundleLimits) -> tupl
         raise BundleError("not a .zip or .tar archive (and not a bundle directory)", loc="archive")
     if kind == "zip":
         files, problems, skipped = _read_zip(fh, archive_size, limits)
+    elif kind == "tar" and fh.seekable():
+        files, problems, skipped = _read_plain_tar(fh, limits)
     else:
         files, problems, skipped = _read_tar(fh, kind, archive_size, limits)
     if problems:

@@ -6,9 +6,12 @@ is collected with its ``loc`` (``views[1:cam2].mask.file``) rather than raised a
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import numpy as np
 
-from ..bundle import View, ViewSpec, pose_to_opencv
+from ..bundle import Intrinsics, View, ViewSpec, pose_to_opencv
 from ..errors import BundleError, Problem, view_loc
 from . import images
 from ._limits import BundleLimits
@@ -39,47 +42,23 @@ def decode_view(
             )
         )
         return None, problems
+    read = functools.partial(_read_image, vloc, intr, paths, source, problems)
     depth = mask = None
     if spec.depth is not None:
-        loc = f"{vloc}.depth.file"
-        if intr is None:
-            problems.append(Problem(loc=f"{vloc}.intrinsics", msg="a view with depth needs intrinsics"))
-        elif loc in paths:
-            try:
-                depth = images.read_depth(
-                    source.read(paths[loc], loc),
-                    spec.depth.format,
-                    scale=spec.depth.scale,
-                    channel=spec.depth.channel,
-                    shape=shape,
-                    max_pixels=limits.max_pixels_per_view,
-                    loc=loc,
-                )
-                if spec.depth.kind == "range":
-                    depth = range_to_z(depth, intr.fx, intr.fy, intr.cx, intr.cy)
-                if not images.has_valid_depth(depth):
-                    warnings.append(f"{vloc}: depth has no valid pixel (all <= 0 or non-finite)")
-            except BundleError as e:
-                problems += e.problems
+        depth = read("depth", "depth", lambda data, loc: images.read_depth(
+            data, spec.depth.format, scale=spec.depth.scale, channel=spec.depth.channel, shape=shape,
+            max_pixels=limits.max_pixels_per_view, loc=loc))
+        if depth is not None:
+            if spec.depth.kind == "range":
+                depth = range_to_z(depth, intr.fx, intr.fy, intr.cx, intr.cy)
+            if not images.has_valid_depth(depth):
+                warnings.append(f"{vloc}: depth has no valid pixel (all <= 0 or non-finite)")
     if spec.mask is not None:
-        loc = f"{vloc}.mask.file"
-        if intr is None:
-            problems.append(Problem(loc=f"{vloc}.intrinsics", msg="a view with a mask needs intrinsics"))
-        elif loc in paths:
-            try:
-                mask = images.read_mask(
-                    source.read(paths[loc], loc),
-                    spec.mask.format,
-                    palette=spec.mask.palette,
-                    shape=shape,
-                    max_pixels=limits.max_pixels_per_view,
-                    loc=loc,
-                    warnings=warnings,
-                )
-                if not mask.any():
-                    warnings.append(f"{vloc}: mask has no instances (all background)")
-            except BundleError as e:
-                problems += e.problems
+        mask = read("mask", "a mask", lambda data, loc: images.read_mask(
+            data, spec.mask.format, palette=spec.mask.palette, shape=shape, max_pixels=limits.max_pixels_per_view,
+            loc=loc, warnings=warnings))
+        if mask is not None and not mask.any():
+            warnings.append(f"{vloc}: mask has no instances (all background)")
     if mask is not None and spec.instance_objects is not None:
         ids = _mask_ids(mask)
         unmapped = sorted(set(ids.tolist()) - set(spec.instance_objects) - {0})
@@ -96,6 +75,23 @@ def decode_view(
         instance_objects=dict(spec.instance_objects) if spec.instance_objects is not None else None,
     )
     return view, problems
+
+
+def _read_image(vloc: str, intr: Intrinsics | None, paths: dict[str, str], source: FileSource, problems: list[Problem], field: str,
+                what: str, decode: Callable[[bytes, str], np.ndarray]) -> np.ndarray | None:
+    """The depth or mask image (``field``) of one view, ``decode(bytes, loc)``-ed; None when the
+    view has no intrinsics, the file is missing (already reported) or unreadable (``problems`` say why)."""
+    loc = f"{vloc}.{field}.file"
+    if intr is None:
+        problems.append(Problem(loc=f"{vloc}.intrinsics", msg=f"a view with {what} needs intrinsics"))
+        return None
+    if loc not in paths:
+        return None
+    try:
+        return decode(source.read(paths[loc], loc), loc)
+    except BundleError as e:
+        problems += e.problems
+        return None
 
 
 def _mask_ids(mask: np.ndarray) -> np.ndarray:
