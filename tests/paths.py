@@ -1,8 +1,8 @@
-"""Where the tests find data: the sample scene ships with the repository; the reference
-checkpoint lives in the shared folder beside the checkout (tests needing it skip without it)."""
+"""Where the tests find data: the sample scene and the reference checkpoint (MIT, with its
+licence) ship with the repository."""
 
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE_DIR = REPO / "examples" / "ue_sample"
-REFERENCE_CHECKPOINT = REPO.parent / "shared" / "reference" / "shadowcorr_best.pth"
+REFERENCE_CHECKPOINT = REPO / "tests" / "data" / "reference" / "shadowcorr_best.pth"

@@ -415,7 +415,6 @@ def test_baseline_method_runs_without_a_model():
     assert len(result.segments) == 8
 
 
-@pytest.mark.skipif(not REFERENCE.exists(), reason="reference checkpoint (../shared) not present")
 def test_real_sample_scene_with_reference_checkpoint():
     from shadowcorr.convert import load_ue_scene
 

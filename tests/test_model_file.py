@@ -99,7 +99,6 @@ def test_wrong_full_kernel_shape_is_named():
         _build(full, packaged.card, "test")
 
 
-@pytest.mark.skipif(not REFERENCE_CHECKPOINT.is_file(), reason="reference checkpoint (../shared) not present")
 def test_authors_checkpoint_and_its_compact_conversion_embed_identically(tmp_path):
     reference = load_model(REFERENCE_CHECKPOINT)
     compact = tmp_path / "reference.safetensors"

@@ -37,7 +37,6 @@ from shadowcorr.nn import local_attention as la_mod
 from .paths import REFERENCE_CHECKPOINT
 
 REFERENCE_PTH = REFERENCE_CHECKPOINT
-needs_reference = pytest.mark.skipif(not REFERENCE_PTH.is_file(), reason="reference checkpoint not available")
 
 
 @pytest.fixture(autouse=True)
@@ -298,7 +297,6 @@ def manual_reference_forward(sd: dict[str, torch.Tensor], feats: np.ndarray, idx
     return x @ p["conv3.kernel"] + p["conv3.bias"]
 
 
-@needs_reference
 def test_reference_mode_equals_hand_written_centre_tap_network():
     model = load_model(REFERENCE_PTH)
     assert model.card.architecture.neighbourhood == "reference"
@@ -380,7 +378,6 @@ def test_net_config_validation():
 
 
 # --------------------------------------------------------------------------- files
-@needs_reference
 def test_reference_checkpoint_and_its_converted_copy_agree(tmp_path):
     ref = load_model(REFERENCE_PTH)
     convert_checkpoint(REFERENCE_PTH, tmp_path / "ref.safetensors")
