@@ -599,6 +599,18 @@ def compounding_table(summary: dict[str, dict[str, dict[str, Any]]], rows: list[
     return lines
 
 
+# ---------------------------------------------------------------- documentation
+#: Where the documentation's quality page includes the tables from (docs/benchmarks/quality.md).
+DOCS_TABLE = REPO / "docs" / "benchmarks" / "tables" / "quality.md"
+
+
+def write_docs_table(tables_md: str, path: Path = DOCS_TABLE) -> Path:
+    """Write a run's rendered tables (the text of ``OUT/table.md``) where the documentation includes them."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(tables_md)
+    return path
+
+
 # ---------------------------------------------------------------- main
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -624,11 +636,18 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--resume", action="store_true", help="keep the runs already in OUT/records.jsonl (same "
                    "condition, scene, perturbation seed and method; failed ones are run again) and run the rest")
     p.add_argument("--list", action="store_true", help="print the conditions and exit")
+    p.add_argument("--docs", action="store_true", help=f"also write the tables to {DOCS_TABLE.relative_to(REPO)}, "
+                   "which the documentation's quality page includes")
+    p.add_argument("--docs-from", metavar="OUT", default=None, help="write OUT/table.md of a finished run to "
+                   f"{DOCS_TABLE.relative_to(REPO)} and exit (evaluates nothing)")
     return p.parse_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.docs_from:
+        print(f"wrote {write_docs_table((Path(args.docs_from) / 'table.md').read_text())}")
+        return 0
     n_scenes = args.scenes if args.scenes is not None else (3 if args.quick else 30)
     repeats = args.real_repeats if args.real_repeats is not None else (2 if args.quick else 5)
     noise_rigs = [r.strip() for r in args.noise_rigs.split(",") if r.strip()]
@@ -700,6 +719,8 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"({cpu:.0f} CPU s in the method calls of all {len(records)} runs: {cpu / args.workers:.0f} s "
               f"on {args.workers} idle cores), generation {t_generated - t_start:.0f} s\n\n")
     (out / "table.md").write_text(header + table)
+    if args.docs:
+        print(f"wrote {write_docs_table(header + table)}")
     print()
     print(header + table)
     print(f"wrote {out / 'records.jsonl'}, {out / 'summary.json'}, {out / 'table.md'}")
