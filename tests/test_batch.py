@@ -17,9 +17,8 @@ import numpy as np
 import pytest
 
 from shadowcorr.cli import main
+from tests.optional import needs_mujoco, needs_ray
 from tests.scenes import sphere_scene
-
-ray = pytest.importorskip("ray", reason='the Ray engine test needs pip install "shadowcorr[ray]"')
 
 SMALL_ROCKS = dict(
     n_rocks=(4, 5), rock_subdivisions=3, field_radius=100.0, terrain_half_size=1000.0, terrain_resolution=96,
@@ -72,6 +71,8 @@ def reference(dataset, tmp_path_factory) -> dict[str, list[int]]:
 @pytest.fixture(scope="module")
 def ray_instance():
     """One local Ray instance with 2 CPUs for the module; ``batch --engine ray`` joins it."""
+    import ray
+
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
@@ -89,6 +90,7 @@ def _check_run(records: list[dict], reference: dict[str, list[int]]) -> None:
             assert r["latency_ms"] > 0 and r["result"]["metrics"]["average_purity"] > 0
 
 
+@needs_mujoco  # the rock fields are settled by MuJoCo
 def test_local_engine_labels_like_correspond_and_resumes(dataset, reference, tmp_path, capsys):
     out = tmp_path / "local.jsonl"
     # An "interrupted" first run: two scenes only.
@@ -126,6 +128,8 @@ def _records_skipping_torn(path: Path) -> list[dict]:
     return out
 
 
+@needs_mujoco
+@needs_ray
 def test_ray_engine_labels_like_correspond_and_resumes(dataset, reference, ray_instance, tmp_path, capsys):
     """Both Ray plans: the staged one (prepare tasks, an actor batching two scenes per forward
     pass) is "interrupted" after three scenes, and the fused one (each scene one task) resumes."""
@@ -142,6 +146,7 @@ def test_ray_engine_labels_like_correspond_and_resumes(dataset, reference, ray_i
     assert "3 already done, running 2 on the ray engine, 2 workers, fused plan" in capsys.readouterr().err
 
 
+@needs_mujoco
 def test_ray_engine_without_ray_names_the_extra(dataset, tmp_path):
     code = (
         "import sys; sys.modules['ray'] = None\n"

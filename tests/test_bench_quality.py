@@ -6,18 +6,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 
 import numpy as np
 import pytest
 
-from shadowcorr.synth.physics import headless_gl_platform
 from tests.harness import load_bench_quality
-
-if not os.environ.get("DISPLAY"):
-    os.environ.setdefault("MUJOCO_GL", headless_gl_platform())
-pytest.importorskip("mujoco")
+from tests.optional import needs_mujoco
 
 TINY = {  # 4-5 rocks of 60-140 cm seen from 400 cm at 192x108 px: each rock a few hundred pixels
     "n_rocks": [4, 5], "rock_diameter": [60.0, 140.0], "rock_subdivisions": 3, "field_radius": 100.0,
@@ -38,6 +33,7 @@ def run(tmp_path_factory):
     return bench, argv, tmp
 
 
+@needs_mujoco  # the synthetic scenes are settled by MuJoCo
 def test_tables_agree_with_records(run, capsys):
     bench, argv, tmp = run
     assert bench.main(argv) == 0
@@ -96,6 +92,7 @@ def test_tables_agree_with_records(run, capsys):
         assert cell == f"{loss:.2f}"
 
 
+@needs_mujoco
 def test_rerun_reuses_cache_and_records(run, capsys):
     bench, argv, tmp = run
     assert bench.main([*argv, "--generate-only"]) == 0

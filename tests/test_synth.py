@@ -20,20 +20,14 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull, cKDTree
 
-# Headless GL must be chosen before mujoco's first import (shadowcorr.synth does the
-# same when it imports mujoco itself; here importorskip comes first).
-from shadowcorr.synth.physics import headless_gl_platform  # noqa: E402  (does not import mujoco)
+from shadowcorr.io import load_bundle, write_bundle
+from shadowcorr.synth import SynthConfig, generate_dataset, generate_scene, scene_seed, synthesize
+from shadowcorr.synth.cameras import make_rig
+from shadowcorr.synth.cli import add_synth_parser, config_from_args
+from shadowcorr.synth.noise import boundary_noise, morph_mask, noisy_depth, noisy_pose
+from shadowcorr.synth.rocks import make_rock
 
-if not os.environ.get("DISPLAY"):
-    os.environ.setdefault("MUJOCO_GL", headless_gl_platform())
-pytest.importorskip("mujoco")
-
-from shadowcorr.io import load_bundle, write_bundle  # noqa: E402
-from shadowcorr.synth import SynthConfig, generate_dataset, generate_scene, scene_seed, synthesize  # noqa: E402
-from shadowcorr.synth.cameras import make_rig  # noqa: E402
-from shadowcorr.synth.cli import add_synth_parser, config_from_args  # noqa: E402
-from shadowcorr.synth.noise import boundary_noise, morph_mask, noisy_depth, noisy_pose  # noqa: E402
-from shadowcorr.synth.rocks import make_rock  # noqa: E402
+from .optional import needs_mujoco
 
 SMALL = dict(
     n_rocks=(7, 8),
@@ -122,6 +116,7 @@ def test_rig_follows_the_real_layout(arc, expected_span):
 
 
 # --------------------------------------------------------------------------- physics
+@needs_mujoco
 def test_rocks_touch_and_rest_on_the_ground(scenes):
     with_contact = 0
     rng = np.random.default_rng(0)
@@ -146,6 +141,7 @@ def test_rocks_touch_and_rest_on_the_ground(scenes):
     assert with_contact >= N_SCENES - 1, "touching rocks must occur in most scenes"
 
 
+@needs_mujoco
 def test_rocks_are_sunk_into_the_ground(scenes):
     """Ground-resting rocks reach below the visible ground by about the sink depth."""
     from shadowcorr.synth.terrain import make_terrain
@@ -162,6 +158,7 @@ def test_rocks_are_sunk_into_the_ground(scenes):
 
 
 # --------------------------------------------------------------------------- rendering
+@needs_mujoco
 def test_masks_match_depth(scenes):
     for s in scenes:
         for v in s.bundle.views:
@@ -172,6 +169,7 @@ def test_masks_match_depth(scenes):
             assert set(np.unique(v.mask)) <= set(range(len(s.rocks) + 1))
 
 
+@needs_mujoco
 def test_ground_depth_kept_and_sky_invalid(config):
     s = synthesize(config.model_copy(update={"background_depth": "terrain"}), scene_seed(DATASET_SEED, 0))
     for v in s.bundle.views:
@@ -182,6 +180,7 @@ def test_ground_depth_kept_and_sky_invalid(config):
         assert v.depth.max() < 2 * 1000.0 + 800.0
 
 
+@needs_mujoco
 def test_pose_and_depth_follow_opencv_convention(scenes):
     """Back-projecting each mask through depth + declared pose lands on that rock's
     surface, and the rock centroid projects into its own mask."""
@@ -212,6 +211,7 @@ def test_pose_and_depth_follow_opencv_convention(scenes):
     assert total > 20 and hits / total > 0.8  # the rest are centroids hidden behind another rock
 
 
+@needs_mujoco
 def test_gl_and_raster_renderers_agree(config):
     from shadowcorr.synth.render import gl_available
 
@@ -227,6 +227,7 @@ def test_gl_and_raster_renderers_agree(config):
 
 
 # --------------------------------------------------------------------------- reproducibility, I/O
+@needs_mujoco
 def test_reproducible_from_seed(config, scenes):
     again = generate_scene(config, scene_seed(DATASET_SEED, 0))
     for a, b in zip(again.views, scenes[0].bundle.views):
@@ -237,6 +238,7 @@ def test_reproducible_from_seed(config, scenes):
     assert scene_seed(DATASET_SEED, 0) != scene_seed(DATASET_SEED, 1) != scene_seed(DATASET_SEED + 1, 0)
 
 
+@needs_mujoco
 def test_dataset_in_parallel_matches_and_round_trips(config, scenes, tmp_path):
     """Two workers write the same scenes as in-process generation; bundles load back
     with their ground truth intact."""
@@ -257,6 +259,7 @@ def test_dataset_in_parallel_matches_and_round_trips(config, scenes, tmp_path):
         assert truth["seed"] == s.truth["seed"] and truth["contacts"] == s.truth["contacts"]
 
 
+@needs_mujoco
 def test_write_bundle_formats_round_trip(scenes, tmp_path):
     bundle = scenes[2].bundle
     out = write_bundle(bundle, tmp_path / "npy", depth_format="npy", mask_format="npy")
@@ -288,6 +291,7 @@ def test_noise_primitives():
     assert (jag != ids).any() and np.array_equal(jag[interior], ids[interior])
 
 
+@needs_mujoco
 def test_realism_knobs_in_a_scene(config, scenes, tmp_path):
     noisy_cfg = config.model_copy(update=dict(
         depth_noise=1.0, pose_noise_translation=2.0, pose_noise_rotation_deg=0.3,
@@ -322,6 +326,7 @@ def test_cli_options_map_to_config(tmp_path):
         config_from_args(parser.parse_args(["synth", "--scenes", "1", "--out", "x", "--cameras", "0"]))
 
 
+@needs_mujoco
 def test_cli_runs_end_to_end(tmp_path):
     from shadowcorr.synth.cli import run_synth
 
