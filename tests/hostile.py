@@ -97,7 +97,22 @@ def many_empty_pixels_bundle(views: int = 16, side: int = 4096) -> tuple[bytes, 
     return zip_files({"manifest.json": json.dumps(manifest).encode(), **files}), ZIP
 
 
-def corrupt_deflate_bundle() -> tuple[bytes, str]:
+def dense_instance_bundle(views: int = 3, side: int = 1700) -> tuple[bytes, str]:
+    """``views`` views of ``side`` x ``side`` pixels that are all one instance with valid depth
+    (8.7 million points at the defaults, over the service's 8 million): a few kB of PNG whose
+    back-projection alone would take hundreds of MB, and ``prepare`` much longer."""
+    from shadowcorr.io import encode_depth_png16, encode_mask_png
+
+    mask = np.ones((side, side), np.uint8)
+    files = {"mask.png": encode_mask_png(mask), "depth.png": encode_depth_png16(np.full((side, side), 5.0), 0.001)}
+    intrinsics = {"fx": 1000.0, "fy": 1000.0, "cx": side / 2, "cy": side / 2, "width": side, "height": side}
+    manifest = {"units": "m", "views": [
+        {"name": f"v{i}", "pose": {"matrix": np.eye(4).tolist()}, "intrinsics": intrinsics,
+         "depth": {"file": "depth.png", "format": "png", "scale": 0.001},
+         "mask": {"file": "mask.png", "format": "png"}} for i in range(views)]}
+    return zip_files({"manifest.json": json.dumps(manifest).encode(), **files}), ZIP
+
+
     """A valid small bundle whose first deflated member starts with a block of the reserved type
     (BFINAL 1, BTYPE 11): the archive's directory is intact, the member fails while inflating."""
     from shadowcorr_service.synthetic import synthetic_bundle

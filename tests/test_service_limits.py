@@ -56,6 +56,7 @@ def _post_measured(server: ServerProcess, body: bytes, content_type: str) -> tup
 @pytest.mark.parametrize("build, code, limit", [
     (hostile.checkerboard_mask_bundle, "too_many_runs", "max_mask_runs"),
     (hostile.huge_point_npz_bundle, "too_many_points", "max_scene_points"),
+    (hostile.dense_instance_bundle, "too_many_points", "max_scene_points"),
     (hostile.many_empty_pixels_bundle, "too_many_pixels", "max_scene_pixels"),
 ])
 def test_costly_uploads_get_413_naming_the_limit_before_the_memory_is_spent(server, build, code, limit):
