@@ -89,6 +89,8 @@ def _options_parent() -> argparse.ArgumentParser:
                    help="keep disconnected blobs of one mask value together")
     g.add_argument("--min-blob-pixels", type=int, help="ignore blobs with fewer pixels")
     g.add_argument("--min-cluster-size", type=int, help="clusters with fewer voxels merge into a larger one")
+    g.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
+                   help="correct the views' poses from their depth first (the server's default: on)")
     g.add_argument("--metrics", action="store_true", help="ask for quality metrics (bundles with ground truth)")
     g.add_argument("--cameras", type=_cameras,
                    help="cameras of Unreal-layout sets, e.g. 0,2,4,6 (default: every camera present)")
@@ -122,6 +124,7 @@ def _request_options(args: argparse.Namespace) -> dict[str, Any]:
         "split_components": False if args.no_split_components else None,
         "min_blob_pixels": args.min_blob_pixels,
         "min_cluster_size": args.min_cluster_size,
+        "refine_poses": args.refine_poses,
         "metrics": True if args.metrics else None,
     }
 

@@ -79,6 +79,7 @@ def correspond_params(
     split_components: bool | None = None,
     min_blob_pixels: int | None = None,
     min_cluster_size: int | None = None,
+    refine_poses: bool | None = None,
     method: Method | None = None,
     metrics: bool | None = None,
 ) -> dict[str, str]:
@@ -88,6 +89,7 @@ def correspond_params(
         "split_components": split_components,
         "min_blob_pixels": min_blob_pixels,
         "min_cluster_size": min_cluster_size,
+        "refine_poses": refine_poses,
         "method": method,
         "metrics": metrics,
     }
@@ -324,6 +326,7 @@ class ShadowCorrClient:
         split_components: bool | None = None,
         min_blob_pixels: int | None = None,
         min_cluster_size: int | None = None,
+        refine_poses: bool | None = None,
         method: Method | None = None,
         metrics: bool | None = None,
         timeout: float | httpx.Timeout | None = None,
@@ -337,7 +340,7 @@ class ShadowCorrClient:
         upload = as_upload(bundle)
         params = correspond_params(bandwidth=bandwidth, split_components=split_components,
                                    min_blob_pixels=min_blob_pixels, min_cluster_size=min_cluster_size,
-                                   method=method, metrics=metrics)
+                                   refine_poses=refine_poses, method=method, metrics=metrics)
         response = self._request("POST", "/correspond", params=params, files=list(upload.parts), timeout=timeout)
         return _parse_result(response)
 
@@ -434,6 +437,7 @@ class AsyncShadowCorrClient:
         split_components: bool | None = None,
         min_blob_pixels: int | None = None,
         min_cluster_size: int | None = None,
+        refine_poses: bool | None = None,
         method: Method | None = None,
         metrics: bool | None = None,
         timeout: float | httpx.Timeout | None = None,
@@ -446,7 +450,7 @@ class AsyncShadowCorrClient:
         upload = bundle if isinstance(bundle, BundleUpload) else await asyncio.to_thread(as_upload, bundle)
         params = correspond_params(bandwidth=bandwidth, split_components=split_components,
                                    min_blob_pixels=min_blob_pixels, min_cluster_size=min_cluster_size,
-                                   method=method, metrics=metrics)
+                                   refine_poses=refine_poses, method=method, metrics=metrics)
         response = await self._request("POST", "/correspond", params=params, files=list(upload.parts),
                                        timeout=timeout)
         return await asyncio.to_thread(_parse_result, response)  # a large result takes a while to validate

@@ -172,6 +172,7 @@ def test_correspond_accepts_paths_bytes_and_in_memory_bundles(server, dataset):
         from_zip_path = client.correspond(dataset / "synth" / "s1.zip")
         from_zip_bytes = client.correspond((dataset / "synth" / "s1.zip").read_bytes(), metrics=True)
         baseline = client.correspond(scene, method="meanshift")
+        unrefined = client.correspond(scene, refine_poses=False)
     assert isinstance(from_memory, Result) and from_memory.method == "fused" and from_memory.model is not None
     assert len(from_memory.segments) == 4 * 3 and from_memory.metrics["rock_purity"] == 100.0
     assert from_dir.metrics is None  # only when asked for
@@ -179,6 +180,8 @@ def test_correspond_accepts_paths_bytes_and_in_memory_bundles(server, dataset):
     assert from_zip_bytes.metrics is not None
     assert len(from_dir.segments) == 4 * 3
     assert baseline.method == "meanshift" and baseline.model is None
+    # per-request options reach the server's configuration (refine_poses is on by default)
+    assert from_memory.config["refine_poses"] is True and unrefined.config["refine_poses"] is False
 
 
 def test_bad_bundles_and_options_are_client_errors_and_not_retried(server, tmp_path):
@@ -224,6 +227,9 @@ def test_cli_health_info_correspond_and_render(server, dataset, tmp_path, capsys
     assert cli(server, "correspond", str(dataset / "real" / "unreal"), "--cameras", "0,2,4,6") == 0
     printed = Result.model_validate_json(capsys.readouterr().out)
     assert {s.view for s in printed.segments} == {"cam0", "cam2", "cam4", "cam6"}
+    assert printed.config["refine_poses"] is True
+    assert cli(server, "correspond", str(dataset / "synth" / "s1.zip"), "--no-refine-poses") == 0
+    assert Result.model_validate_json(capsys.readouterr().out).config["refine_poses"] is False
     # A 4xx from the server exits 1 with the server's message.
     assert cli(server, "correspond", str(dataset / "synth" / "s1.zip"), "--bandwidth", "-2") == 1
     assert "invalid_options" in capsys.readouterr().err

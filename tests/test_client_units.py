@@ -154,9 +154,9 @@ def unused_port() -> int:
 def test_correspond_params_only_sends_what_is_set():
     assert correspond_params() == {}
     assert correspond_params(bandwidth=0.5, split_components=False, metrics=True, method="meanshift",
-                             min_blob_pixels=10, min_cluster_size=3) == {
+                             min_blob_pixels=10, min_cluster_size=3, refine_poses=False) == {
         "bandwidth": "0.5", "split_components": "false", "metrics": "true", "method": "meanshift",
-        "min_blob_pixels": "10", "min_cluster_size": "3"}
+        "min_blob_pixels": "10", "min_cluster_size": "3", "refine_poses": "false"}
 
 
 def test_error_from_response_reads_the_service_error_body_or_falls_back():
