@@ -34,20 +34,36 @@ Exit status: 0 success; 1 a request or a scene failed (or the server is not read
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
+# The option types below follow the library's CLI (shadowcorr.cli) case for case, without
+# importing it: tests/test_cli_parsing.py runs one table of cases against both.
 def _cameras(text: str) -> list[int]:
+    """At least one whole number >= 0, comma-separated; spaces and empty items are ignored."""
     try:
-        cams = [int(c) for c in text.split(",") if c.strip()]
+        cameras = [int(c) for c in text.split(",") if c.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"cameras must be comma-separated integers, got {text!r}") from None
-    if not cams:
-        raise argparse.ArgumentTypeError("give at least one camera")
-    return cams
+        cameras = []
+    if not cameras or min(cameras) < 0:
+        raise argparse.ArgumentTypeError(f"expected comma-separated camera numbers (e.g. 0,2,4,6), got {text!r}")
+    return cameras
 
 
 def _positive_int(text: str) -> int:
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
     if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return value
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
     return value
 
 
@@ -98,7 +114,7 @@ def _options_parent() -> argparse.ArgumentParser:
     b.add_argument("--camera", action="append", type=_bag_camera, metavar="NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC]",
                    help="a camera of the bags (repeat for more; default: found by the NS/depth/image_raw layout)")
     b.add_argument("--fixed-frame", default="map", help="world frame of the poses (default %(default)s)")
-    b.add_argument("--sync-tolerance", type=float, default=0.0, metavar="SECONDS",
+    b.add_argument("--sync-tolerance", type=_seconds, default=0.0, metavar="SECONDS",
                    help="largest depth/mask stamp difference (default 0: exact)")
     b.add_argument("--every", type=_positive_int, default=1, metavar="K", help="keep every K-th view of a camera")
     b.add_argument("--max-views", type=_positive_int, metavar="N", help="at most N views per camera")

@@ -43,14 +43,16 @@ _MAX_DEPTH = 8  # deep enough for any sane layout; bounds the walk on a mistaken
 LIBRARY_INSTALL = "pip install shadowcorr  (the library: from a ShadowCorr checkout, `pip install .` at its root)"
 # The dataset's file names (SPEC §4); the client must find these scenes without the library.
 _UE_DEPTH_FILE = re.compile(r"^Set(\d+)_Depth_(\d+)\.exr$")
-_BAG_CAMERA = re.compile(r"^[^=,\s]+=[^,\s]+,[^,\s]+(,[^,\s]+)?$")
-
-
 def parse_bag_camera(text: str) -> str:
-    """Check a ``NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC]`` camera spec (the library parses it when converting)."""
-    if not _BAG_CAMERA.match(text.strip()):
+    """Check a ``NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC]`` camera spec and return it without the
+    spaces around its parts (the library's ``BagCamera.parse`` rule, which converts it later):
+    no part empty or holding a space, no comma in the name, no ``=`` in a topic."""
+    name, sep, topics = text.partition("=")
+    name, parts = name.strip(), [t.strip() for t in topics.split(",")]
+    if (not sep or not name or "," in name or len(parts) not in (2, 3)
+            or any(not p or "=" in p for p in parts) or any(c.isspace() for c in name + "".join(parts))):
         raise ValueError(f"camera must be NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC], got {text!r}")
-    return text.strip()
+    return f"{name}={','.join(parts)}"
 
 
 @dataclass(frozen=True)

@@ -85,11 +85,15 @@ def configure_logging(args: argparse.Namespace) -> None:
 
 
 def parse_cameras(text: str) -> list[int]:
-    """``--cameras 0,2,4,6`` -> [0, 2, 4, 6] (an argparse type)."""
+    """``--cameras 0,2,4,6`` -> [0, 2, 4, 6] (an argparse type): at least one whole number >= 0;
+    spaces and empty items between the commas are ignored (``shadowcorr-client`` parses the same)."""
     try:
-        return [int(c) for c in text.split(",") if c.strip()]
+        cameras = [int(c) for c in text.split(",") if c.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"cameras must be comma-separated integers, got {text!r}") from None
+        cameras = []
+    if not cameras or min(cameras) < 0:
+        raise argparse.ArgumentTypeError(f"expected comma-separated camera numbers (e.g. 0,2,4,6), got {text!r}")
+    return cameras
 
 
 def add_method_options(p: argparse.ArgumentParser, threads_default: int = 0) -> None:
@@ -295,9 +299,20 @@ def positive_int(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        value = 0
     if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return value
+
+
+def seconds(text: str) -> float:
+    """An argparse type: a finite number of seconds >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
     return value
 
 
@@ -335,7 +350,7 @@ def _add_convert_parser(sub: argparse._SubParsersAction) -> None:
     bag.add_argument("--camera", action="append", type=_bag_camera, metavar="NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC]",
                      help="one camera (repeat for more); INFO_TOPIC defaults to the camera_info beside DEPTH_TOPIC")
     bag.add_argument("--fixed-frame", default="map", help="world frame of the poses (default %(default)s)")
-    bag.add_argument("--sync-tolerance", type=float, default=0.0, metavar="SECONDS",
+    bag.add_argument("--sync-tolerance", type=seconds, default=0.0, metavar="SECONDS",
                      help="largest stamp difference between a depth image and its mask, and the furthest a "
                           "transform is extrapolated (default 0: exact stamps)")
     bag.add_argument("--every", type=positive_int, default=1, metavar="K",

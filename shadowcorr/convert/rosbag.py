@@ -98,12 +98,16 @@ class BagCamera:
 
     @classmethod
     def parse(cls, text: str) -> "BagCamera":
-        """``NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC]`` (the ``--camera`` option)."""
+        """``NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC]`` (the ``--camera`` option).
+
+        Spaces around the parts are ignored; a part may not be empty or hold a space, the name
+        no comma and a topic no ``=`` (``shadowcorr-client`` checks the same rule)."""
         name, sep, topics = text.partition("=")
-        parts = [t.strip() for t in topics.split(",")]
-        if not sep or not name.strip() or len(parts) not in (2, 3) or not all(parts):
+        name, parts = name.strip(), [t.strip() for t in topics.split(",")]
+        if (not sep or not name or "," in name or len(parts) not in (2, 3)
+                or any(not p or "=" in p for p in parts) or any(c.isspace() for c in name + "".join(parts))):
             raise ValueError(f"camera must be NAME=DEPTH_TOPIC,MASK_TOPIC[,INFO_TOPIC], got {text!r}")
-        return cls(name.strip(), parts[0], parts[1], parts[2] if len(parts) == 3 else "")
+        return cls(name, parts[0], parts[1], parts[2] if len(parts) == 3 else "")
 
 
 def is_rosbag(path: str | Path) -> bool:
