@@ -46,6 +46,9 @@ _EXPORTS = {
     "load_model": "nn",
     "save_model": "nn",
     "correspond": "pipeline",
+    "object_points": "pipeline",
+    "ObjectPoints": "stages",
+    "OrientedBox": "result",
     "embed": "pipeline",
     "prepare": "pipeline",
     "refine_poses": "stages",
@@ -66,6 +69,6 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from .errors import BundleError, DepthRangeError, Problem, SceneLimitError
     from .io import BundleLimits, load_bundle, load_bundle_from_parts, write_bundle, write_bundle_archive
     from .nn import Model, ModelCard, load_model, save_model
-    from .pipeline import assign, correspond, embed, prepare
-    from .result import ObjectSummary, Result, SegmentLabel, ViewPoseCorrection
-    from .stages import VoxelScene, refine_poses
+    from .pipeline import assign, correspond, embed, object_points, prepare
+    from .result import ObjectSummary, OrientedBox, Result, SegmentLabel, ViewPoseCorrection
+    from .stages import ObjectPoints, VoxelScene, refine_poses

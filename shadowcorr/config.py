@@ -178,6 +178,17 @@ class ShadowCorrConfig(BaseModel):
         "this many voxels of that object's kept voxels; otherwise it is an object of its own"
     )
 
+    # each object's geometry (see shadowcorr.stages, stages 05 occupancy and 11 geometry)
+    up_axis: Literal["auto", "x", "y", "z", "-x", "-y", "-z"] = Field(
+        "auto", description="the world axis pointing up (against gravity) in the bundle's frame, about which oriented "
+        "boxes turn; auto: the axis nearest to the cameras' mean up (z for REP 103 worlds, Unreal scenes and the "
+        "synthetic generator)")
+    volume_subdivisions: int = Field(2, ge=1, le=6, description="samples per voxel edge at which the depth images "
+                                     "rule out a shadow voxel's parts (volume resolution: voxel_size / this)")
+    volume_relative_std: float = Field(0.12, ge=0, description="relative error of an object's volume added to its "
+                                       "volume_std: the spread of volume / mesh volume on synthetic scenes "
+                                       "(benchmarks/bench_geometry.py), parts no view saw")
+
     @model_validator(mode="after")
     def _geometry(self) -> "ShadowCorrConfig":
         if self.downsample_size >= self.voxel_size:

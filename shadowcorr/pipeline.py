@@ -8,6 +8,7 @@ the network once over all of them (the service batches concurrent requests throu
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -21,6 +22,7 @@ from .stages._01_poses import pose_warnings, refine_poses
 from .stages._02_segments import check_valid_depth, extract_segments
 from .stages._03_surface_evidence import surface_evidence
 from .stages._04_shells import raw_shells, segment_shells
+from .stages._05_occupancy import shadow_occupancy
 from .stages._05_shadows import ShadowVoxels, cast_shadows
 from .stages._06_voxel_scene import VoxelScene, build_voxel_scene
 from .stages._07_network import baseline_embeddings, check_compatible, embed, model_info
@@ -28,8 +30,10 @@ from .stages._09_clustering import cluster_voxels
 from .stages._09_grouping import group_by_evidence
 from .stages._09_support import segment_support
 from .stages._10_assignment import evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote
+from .stages._11_geometry import ObjectPoints, fuse_object_points, object_geometry, with_geometry
 
-__all__ = ["assign", "baseline_embeddings", "check_compatible", "correspond", "embed", "model_info", "prepare"]
+__all__ = ["assign", "baseline_embeddings", "check_compatible", "correspond", "embed", "model_info", "object_points", "prepare",
+           "with_pose_corrections"]
 
 
 def _ms_since(t0: float) -> float:
@@ -94,11 +98,17 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
         shadows = cast_shadows(segments, shells, config)
         timings["shadows"] = _ms_since(t0)
         _check_stage_time(timings, config)
+    t0 = time.perf_counter()  # 05 occupancy: what the depth images leave solid of the shadows
+    occupancy = shadow_occupancy(bundle.views, shadows, unit_scale(bundle.units, config.units), config)
+    timings["occupancy"] = _ms_since(t0)
+    _check_stage_time(timings, config)
     scene = build_voxel_scene(  # 06
         bundle.name, bundle.units, unit_scale(bundle.units, config.units), segments, shells, shadows, config, timings
     )
     _check_stage_time(timings, config)  # consensus, segment embeddings, features
     scene.surface = surface
+    scene.occupancy = occupancy if occupancy.cell.size else None
+    scene.view_poses = np.stack([v.pose for v in bundle.views])
     scene.poses = poses
     # Segments without depth first: they say the most about whether the result can be trusted.
     scene.warnings[:0] = depth_warnings + list(bundle.warnings) + (pose_warnings(poses) if poses else [])
@@ -144,6 +154,12 @@ def assign(
     segments = segment_labels(scene, seg_object, support, how)
     objects = object_summaries(scene, seg_object, voxel_object, num_objects)
     timings["assign"] = _ms_since(t0)
+    t0 = time.perf_counter()  # 11
+    points = _fused_points(scene, seg_object, num_objects)
+    geometry = object_geometry(points, scene.occupancy, seg_object, scene.segment_view, scene.shell_count,
+                               scene.view_poses, scene.unit_scale, scene.config)
+    objects = with_geometry(objects, geometry, support, seg_object)
+    timings["geometry"] = _ms_since(t0)
 
     scores = None
     if metrics and scene.segment_truth is not None:
@@ -151,7 +167,7 @@ def assign(
 
         scores = score_scene(scene, seg_object, voxel_object)
     timings["total"] = sum(v for k, v in timings.items() if k != "total")
-    return Result(
+    result = Result(
         scene=scene.name,
         units=scene.units,
         method=config.method,
@@ -164,6 +180,17 @@ def assign(
         poses=scene.poses,
         config=config.model_dump(mode="json"),
     )
+    result._object_points = points
+    return result
+
+
+def _fused_points(scene: VoxelScene, seg_object: np.ndarray, num_objects: int) -> ObjectPoints:
+    """Stage 11's fused points from the shells the scene carries (none when it carries no shells)."""
+    if scene.shell_points is None:
+        return ObjectPoints(np.zeros((0, 3)), np.zeros(0, np.int64), num_objects, scene.units)
+    shell_segment = np.repeat(np.arange(scene.num_segments), scene.shell_count)
+    return fuse_object_points(scene.shell_points.astype(np.float64), shell_segment, seg_object, num_objects,
+                              scene.unit_scale, scene.units, scene.config)
 
 
 def correspond(
@@ -189,3 +216,41 @@ def correspond(
     scene.timings_ms["network"] = _ms_since(t0)
     _check_stage_time(scene.timings_ms, config)
     return assign(scene, embeddings, config, model=model_info(model), metrics=metrics)
+
+
+def object_points(bundle: SceneBundle, result: Result) -> ObjectPoints:
+    """Each object's fused, deduplicated surface points (bundle units), as stage 11 measured them.
+
+    A result made by this library in this process carries them already; a result read from
+    JSON gets them again from ``bundle``: its segments are cut with the result's
+    configuration and pose corrections and cleaned (stages 02 and 04), then fused by the
+    result's labels.  Raises ``ValueError`` when the bundle's segments are not the result's.
+    """
+    if result._object_points is not None:
+        return result._object_points
+    config = ShadowCorrConfig.model_validate(result.config or {})
+    bundle = with_pose_corrections(bundle, result)
+    segments = extract_segments(bundle, config)
+    cut = [(segments.view_names[v], int(i), int(c))
+           for v, i, c in zip(segments.view.tolist(), segments.instance.tolist(), segments.component.tolist())]
+    if cut != [(s.view, s.instance, s.component) for s in result.segments]:
+        raise ValueError(f"the bundle {bundle.name!r} does not cut into the result's segments (scene "
+                         f"{result.scene!r}: {len(result.segments)} segments, the bundle: {len(cut)}); export a "
+                         "result with the bundle it was computed from")
+    segments.pixel_segment = None
+    shells = raw_shells(segments) if config.method == "projection" else segment_shells(segments, config)
+    seg_object = np.asarray(result.labels, dtype=np.int64)
+    points = fuse_object_points(shells.points.astype(np.float32).astype(np.float64), shells.segment, seg_object,
+                                len(result.objects), unit_scale(bundle.units, config.units), bundle.units, config)
+    result._object_points = points
+    return points
+
+
+def with_pose_corrections(bundle: SceneBundle, result: Result) -> SceneBundle:
+    """``bundle`` with the pose corrections ``result`` reports applied (refined pose = correction @ declared)."""
+    if not result.poses:
+        return bundle
+    correction = {p.view: np.asarray(p.correction, dtype=np.float64) for p in result.poses if p.status == "corrected"}
+    views = [dataclasses.replace(v, pose=correction[v.name] @ v.pose) if v.name in correction else v
+             for v in bundle.views]
+    return dataclasses.replace(bundle, views=views)

@@ -58,3 +58,24 @@ def slerp(q0, q1, t: float) -> np.ndarray:
         return out / np.linalg.norm(out)
     theta = np.arccos(min(dot, 1.0))
     return (np.sin((1 - t) * theta) * a + np.sin(t * theta) * b) / np.sin(theta)
+
+
+#: World axis names an "up" may be given as ("auto": the one nearest to the cameras' up).
+UP_AXES = ("auto", "x", "y", "z", "-x", "-y", "-z")
+
+
+def world_up(poses: np.ndarray, up_axis: str = "auto") -> tuple[int, float]:
+    """The world axis pointing up, as (axis index, sign), for camera-to-world ``poses`` (V, 4, 4), OpenCV.
+
+    ``auto`` takes the axis nearest to the cameras' mean up direction (``-y`` of the
+    OpenCV camera frame): cameras are mounted upright, whatever the world's convention.
+    """
+    if up_axis == "auto":
+        camera_up = -np.asarray(poses)[:, :3, 1].mean(axis=0) if len(poses) else np.array([0.0, 0.0, 1.0])
+        if not np.any(np.abs(camera_up) > 1e-9):
+            camera_up = np.array([0.0, 0.0, 1.0])
+        k = int(np.argmax(np.abs(camera_up)))
+        return k, (1.0 if camera_up[k] > 0 else -1.0)
+    if up_axis not in UP_AXES:
+        raise ValueError(f"up axis must be one of {', '.join(UP_AXES)}, got {up_axis!r}")
+    return "xyz".index(up_axis[-1]), (-1.0 if up_axis.startswith("-") else 1.0)

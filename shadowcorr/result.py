@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, PrivateAttr
 
 from ._version import __version__
 
@@ -34,6 +34,27 @@ class SegmentLabel(BaseModel):
     )
 
 
+class OrientedBox(BaseModel):
+    """A box around an object, turned about the world's up axis (bundle units).
+
+    It spans the object's fused surface points and the centres of its voxels that are at least
+    half solid.  Its axes are, in order, the longer and the shorter principal axis of the
+    footprint on the ground plane, then the up axis (``ShadowCorrConfig.up_axis``):
+    ``size`` is the extent along each, ``quaternion`` turns the box frame into the world frame.
+    """
+
+    center: list[float] = Field(description="box centre [x, y, z]")
+    size: list[float] = Field(description="edge lengths along the box's own axes: [long, short, vertical]")
+    quaternion: list[float] = Field(description="orientation, [x, y, z, w] (ROS order), box frame -> world frame")
+
+
+class Extent(BaseModel):
+    """Axis-aligned bounds of the surface the views saw (bundle units)."""
+
+    min: list[float]
+    max: list[float]
+
+
 class ObjectSummary(BaseModel):
     """One physical object found in the scene. Lengths in the bundle's units."""
 
@@ -44,6 +65,21 @@ class ObjectSummary(BaseModel):
     bbox_min: list[float] | None
     bbox_max: list[float] | None
     num_voxels: int
+    confidence: float | None = Field(None, description="mean support of its segments (0-1)")
+    oriented_box: OrientedBox | None = Field(
+        None, description="box around its fused surface points and half-solid voxels, turned about the up axis "
+        "(see OrientedBox); none without points")
+    volume: float | None = Field(
+        None, description="bundle units^3: the solid part of the shadow voxels it owns, which no view sees through "
+        "or sees the background in front of (shadowcorr.stages, stage 05 occupancy); none under 'projection', for "
+        "bundles without depth images, and when none of its voxels is solid")
+    volume_std: float | None = Field(
+        None, description="uncertainty of `volume` (bundle units^3): half the volume only one view's background rules "
+        "out, and the sampling of the voxels, added in quadrature")
+    extent: Extent | None = Field(None, description="axis-aligned bounds of its fused surface points")
+    num_views: int = Field(0, description="views whose points it holds")
+    num_points: int = Field(0, description="fused surface points: the segments' cleaned points averaged per "
+                            "downsample cell of the object, so that overlapping views count once")
 
 
 PoseStatus = Literal["corrected", "unchanged", "not_registered", "correction_too_large", "not_confirmed"]
@@ -110,6 +146,9 @@ class Result(BaseModel):
         None, description="the ShadowCorrConfig the result was computed with (how segments were cut, clustering, ...)"
     )
     shadowcorr_version: str = __version__
+    # The fused surface points of every object when the pipeline made this result (see
+    # shadowcorr.object_points), so that exports do not compute them again; never serialised.
+    _object_points: Any = PrivateAttr(default=None)
 
     @property
     def labels(self) -> list[int]:

@@ -29,6 +29,7 @@ from typing import Literal
 import numpy as np
 from PIL import Image, ImageDraw
 
+from ..poses import world_up
 from ._draw import Label, draw_arrow, draw_labels, font, text_size, wrap
 from ._raster import rasterise
 from .palette import CAMERA, RGB, object_colour, object_colours
@@ -63,15 +64,7 @@ class MapFrame:
 
 def choose_frame(poses: np.ndarray, up_axis: UpAxis = "auto") -> MapFrame:
     """The map frame for cameras with camera-to-world ``poses`` (V, 4, 4), OpenCV convention."""
-    if up_axis == "auto":
-        camera_up = -poses[:, :3, 1].mean(axis=0) if len(poses) else np.array([0.0, 0.0, 1.0])
-        if not np.any(np.abs(camera_up) > 1e-9):
-            camera_up = np.array([0.0, 0.0, 1.0])
-        k = int(np.argmax(np.abs(camera_up)))
-        sign = 1.0 if camera_up[k] > 0 else -1.0
-    else:
-        sign = -1.0 if up_axis.startswith("-") else 1.0
-        k = AXIS_NAMES.index(up_axis[-1])
+    k, sign = world_up(poses, up_axis)
     a, b = (k + 1) % 3, (k + 2) % 3
     right, forward = (a, b) if sign > 0 else (b, a)  # e_a x e_b = e_k; swap for a downward-named axis
     return MapFrame(right=right, forward=forward, up=k, up_sign=sign)

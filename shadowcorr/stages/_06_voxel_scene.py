@@ -25,6 +25,7 @@ from ..result import ViewPoseCorrection
 from ._02_segments import Segments
 from ._03_surface_evidence import SurfaceEvidence
 from ._04_shells import SegmentShells
+from ._05_occupancy import ShadowOccupancy
 from ._05_shadows import ShadowVoxels
 from ._06_segment_embedding import cooccurrence, train_segment_embeddings, voxel_embeddings
 
@@ -67,6 +68,12 @@ class VoxelScene:
     # cross-view surface evidence (methods 'projection' and 'fused'); None otherwise
     surface: SurfaceEvidence | None = None
     poses: list[ViewPoseCorrection] | None = None  # pose refinement report, when it ran
+    # each segment's cleaned points (stage 04), float32, sorted by segment, for the objects' geometry (stage 11)
+    shell_points: np.ndarray | None = None  # (P, 3) config units
+    shell_count: np.ndarray | None = None  # (S,)
+    # the solid share of the shadow voxels (stage 05 occupancy); None when no shadow was cast or no depth image read
+    occupancy: ShadowOccupancy | None = None
+    view_poses: np.ndarray | None = None  # (V, 4, 4) camera-to-world poses of the views (refined where refined)
 
     @property
     def num_segments(self) -> int:
@@ -165,4 +172,6 @@ def build_voxel_scene(
         orphan_segment=shadows.segment[orphan_member],
         orphan_index=shadows.cell[orphan_member],
         timings_ms=timings_ms,
+        shell_points=shells.points.astype(np.float32),
+        shell_count=shells.count,
     )

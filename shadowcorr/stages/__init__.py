@@ -7,12 +7,14 @@
     03 surface_evidence  Segments -> SurfaceEvidence: where each segment lands in the other views
     04 shells            Segments -> SegmentShells: cleaned points, error ellipsoid, viewing direction
     05 shadows           SegmentShells -> ShadowVoxels: confidence-weighted voxels behind each shell
+    05 occupancy         ShadowVoxels + depth images -> ShadowOccupancy: the solid share of each shadow voxel
     06 voxel_scene       ShadowVoxels -> VoxelScene: consensus voxels, segment-id embeddings, features
     07 network           VoxelScene -> per-voxel embeddings (the model is in shadowcorr.nn)
     08 volume_evidence   embeddings -> evidence between segments whose shadows meet
     09 grouping          surface + volume evidence -> groups of segments   (fused, projection)
     09 clustering        embeddings -> voxel clusters (MeanShift)          (shadowcorr, meanshift)
     10 assignment        groups or clusters -> one object per segment, object summaries
+    11 geometry          objects -> fused points, oriented box, volume, seen extent per object
 
 Stage 03 runs beside 04-06 (methods ``fused`` and ``projection``); the two stages 09 are
 alternatives, chosen by ``ShadowCorrConfig.method``.  :mod:`shadowcorr.pipeline` composes
@@ -55,6 +57,9 @@ _EXPORTS = {
     "ShadowVoxels": "_05_shadows",
     "beta_profile": "_05_shadows",
     "cast_shadows": "_05_shadows",
+    # 05 occupancy
+    "ShadowOccupancy": "_05_occupancy",
+    "shadow_occupancy": "_05_occupancy",
     # 06 voxel scene
     "VoxelScene": "_06_voxel_scene",
     "build_voxel_scene": "_06_voxel_scene",
@@ -96,6 +101,14 @@ _EXPORTS = {
     "orphan_warnings": "_10_assignment",
     "segment_labels": "_10_assignment",
     "vote": "_10_assignment",
+    # 11 geometry
+    "ObjectGeometry": "_11_geometry",
+    "ObjectPoints": "_11_geometry",
+    "fuse_object_points": "_11_geometry",
+    "object_geometry": "_11_geometry",
+    "object_volumes": "_11_geometry",
+    "oriented_boxes": "_11_geometry",
+    "with_geometry": "_11_geometry",
 }
 
 __all__ = sorted(_EXPORTS)
@@ -106,6 +119,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._02_segments import Blobs, SegmentImage, Segments, back_project, check_valid_depth, extract_segments, find_blobs
     from ._03_surface_evidence import SurfaceEvidence, sample_segment_points, surface_evidence
     from ._04_shells import SegmentShells, raw_shells, remove_statistical_outliers, segment_shells, voxel_downsample
+    from ._05_occupancy import ShadowOccupancy, shadow_occupancy
     from ._05_shadows import ShadowVoxels, beta_profile, cast_shadows
     from ._06_segment_embedding import cooccurrence, segment_embedding_loss, train_segment_embeddings
     from ._06_voxel_scene import VoxelScene, build_voxel_scene
@@ -119,4 +133,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._09_support import SUPPORT_FEATURES, SupportCalibration, segment_support, support_calibration, support_features
     from ._10_assignment import (
         evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote,
+    )
+    from ._11_geometry import (
+        ObjectGeometry, ObjectPoints, fuse_object_points, object_geometry, object_volumes, oriented_boxes, with_geometry,
     )
