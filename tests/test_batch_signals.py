@@ -1,4 +1,4 @@
-"""``shadowcorr batch`` leaves no process behind when its driver is stopped, by SIGTERM or SIGKILL.
+"""``shadowcorr batch`` leaves no process behind when its driver is stopped, by SIGTERM, SIGINT or SIGKILL.
 
 Each test runs the real CLI as a subprocess on a dataset of many tiny scenes (hard links
 of one sphere-scene archive, so the run is still going when it is signalled), records
@@ -82,9 +82,10 @@ def _signal_mid_run(engine: str, sig: signal.Signals, dataset: Path,
            "--workers", str(WORKERS), "--no-progress"]
     env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}  # a local Ray instance of its own
     with open(err_path, "wb") as err:
-        # Its own session: a Ctrl-C of the test run does not reach it.
+        # Its own session: a Ctrl-C of the test run does not reach it.  SIGINT at its default, as
+        # under a terminal, whatever this test run inherited (a background job ignores it).
         proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err,
-                                start_new_session=True)
+                                start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     driver = psutil.Process(proc.pid)
     descendants: Descendants = {}
     try:
@@ -136,6 +137,17 @@ def test_sigterm_stops_the_run_keeps_its_results_and_leaves_no_process(engine, d
     # The next run skips exactly the scenes written.
     run, _ = plan_batch(dataset, out, BatchOptions())
     assert (run.skipped, len(run.todo), run.unreadable_lines) == (len(records), SCENES - len(records), 0)
+
+
+def test_sigint_stops_the_run_with_status_130_keeps_its_results_and_leaves_no_process(dataset, tmp_path):
+    # Ctrl-C: the same orderly stop as SIGTERM, told apart by its exit status and message.
+    status, stderr, out, descendants = _signal_mid_run("local", signal.SIGINT, dataset, tmp_path)
+    _check_started("local", descendants)
+    assert not (left := _alive(descendants)), f"still running after the driver's SIGINT: {left}"
+    assert status == 130, stderr
+    assert "interrupted: finished scenes are in" in stderr and "terminated" not in stderr, stderr
+    records = [json.loads(line) for line in _lines(out)]
+    assert records and all(r["status"] == "ok" for r in records)
 
 
 @pytest.mark.parametrize("engine", ["local", "ray"])
