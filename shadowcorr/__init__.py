@@ -47,6 +47,7 @@ _EXPORTS = {
     "save_model": "nn",
     "correspond": "pipeline",
     "object_points": "pipeline",
+    "export": "export",
     "ObjectPoints": "stages",
     "OrientedBox": "result",
     "embed": "pipeline",
@@ -72,3 +73,4 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from .pipeline import assign, correspond, embed, object_points, prepare
     from .result import ObjectSummary, OrientedBox, Result, SegmentLabel, ViewPoseCorrection
     from .stages import ObjectPoints, VoxelScene, refine_poses
+    from .export import export

@@ -253,6 +253,27 @@ def cmd_correspond(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from .export import export
+    from .result import Result
+
+    try:
+        result = Result.model_validate_json(Path(args.result).read_bytes())
+    except OSError as exc:
+        raise FileNotFoundError(f"{args.result}: {exc.strerror}") from None
+    except ValueError as exc:  # pydantic's ValidationError is a ValueError
+        raise ValueError(f"{args.result} is not a result JSON: {exc}") from None
+    (_, load), *rest = list(iter_scenes(Path(args.bundle), args.cameras))
+    if rest:
+        raise SystemExit(f"{args.bundle} holds {len(rest) + 1} scenes; `export` takes the one the result was computed from")
+    try:
+        out = export(result, load(), args.to, args.out, frame_id=args.frame_id, storage=args.storage)
+    except ImportError as exc:
+        raise SystemExit(f"error: {exc}") from None
+    print(f"wrote {args.to} {out}")
+    return 0
+
+
 #: Metric key -> column header of the `eval` table (each fits its 18-character column).
 EVAL_COLUMNS = {"average_purity": "average purity", "rock_purity": "rock purity", "cluster_purity": "cluster purity",
                 "voxel_ari": "voxel ARI", "perfect_one_to_one_share": "perfect 1:1 share", "coverage": "coverage %"}
@@ -438,3 +459,17 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+    p = sub.add_parser("export", help="a result as a ROS 2 bag, PLY files or a Rerun recording",
+                       description="Write a result JSON and the bundle it was computed from as a ROS 2 bag (vision_msgs "
+                       "detections, markers, the labelled point cloud, camera frames; metres), PLY files (one per "
+                       "object and one coloured with all) or a Rerun recording (pip install 'shadowcorr[viz]'). "
+                       "See docs/guide/exports.md.")
+    p.add_argument("result", help="result JSON (shadowcorr correspond --out, or the service's answer)")
+    p.add_argument("bundle", help="the bundle the result was computed from (as for correspond)")
+    p.add_argument("out", help="bag or PLY directory, or .rrd file, to create (never overwritten)")
+    p.add_argument("--to", required=True, choices=["bag", "ply", "rrd"], help="the format to write")
+    p.add_argument("--cameras", type=parse_cameras, help="cameras of an Unreal-layout directory (as for correspond)")
+    p.add_argument("--frame-id", default="map", help="world frame of the bag's messages (default %(default)s)")
+    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="the bag's storage (default %(default)s)")
+    p.set_defaults(func=cmd_export)
+
