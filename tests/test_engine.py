@@ -364,13 +364,45 @@ def test_narrow_arrays_as_loaded_give_the_result_of_float32_depth_and_int32_mask
     assert a.poses == b.poses
 
 
-def test_ground_truth_never_reaches_the_features():
+def _same_scene(a, b, path: str = "scene") -> None:
+    """Every field of two prepared scenes equal (nested dataclasses, arrays, lists, dicts), the
+    ground truth and the timings left out."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(a):
+        for f in dataclasses.fields(a):
+            if f.name not in ("segment_truth", "timings_ms"):
+                _same_scene(getattr(a, f.name), getattr(b, f.name), f"{path}.{f.name}")
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and a.shape == b.shape and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), path
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same_scene(x, y, f"{path}[{i}]")
+    else:
+        assert a == b, path
+
+
+@pytest.mark.parametrize("method", ["fused", "shadowcorr"])
+def test_ground_truth_never_reaches_the_features(model, method):
+    # The same pixels three times: the truth is the mask id ('instance'), a table that
+    # contradicts the mask ids across views ('mapped': the two spheres swapped in every other
+    # view), or absent ('none').  Everything inference computes must be the same.
     bundle = sphere_scene([[-100, 0, 0], [100, 0, 0]], [50, 50])
-    plain = prepare(bundle)
-    truthless = SceneBundle(units="cm", views=bundle.views, ground_truth="none")
-    other = prepare(truthless)
-    np.testing.assert_array_equal(plain.features, other.features)
-    assert plain.segment_truth is not None and other.segment_truth is None
+    swapped = [replace(v, instance_objects={int(i): int(3 - i if k % 2 else i) for i in np.unique(v.mask) if i})
+               for k, v in enumerate(bundle.views)]
+    mapped = SceneBundle(units="cm", views=swapped, ground_truth="mapped", name=bundle.name)
+    truthless = SceneBundle(units="cm", views=bundle.views, ground_truth="none", name=bundle.name)
+    config = ShadowCorrConfig(method=method)
+    scenes = [prepare(b, config) for b in (bundle, mapped, truthless)]
+    assert not np.array_equal(scenes[0].segment_truth, scenes[1].segment_truth)  # the truth really differs
+    assert scenes[2].segment_truth is None
+    for other in scenes[1:]:
+        _same_scene(scenes[0], other)
+    results = [correspond(b, model, config, metrics=False) for b in (bundle, mapped, truthless)]
+    for r in results[1:]:
+        assert [s.model_dump() for s in r.segments] == [s.model_dump() for s in results[0].segments]
+        assert [o.model_dump() for o in r.objects] == [o.model_dump() for o in results[0].objects]
 
 
 def test_segment_embedding_training_lowers_its_loss():
