@@ -406,6 +406,20 @@ def build_parser() -> argparse.ArgumentParser:
     add_method_options(p)
     p.set_defaults(func=cmd_correspond)
 
+    p = sub.add_parser("export", help="a result as a ROS 2 bag, PLY files or a Rerun recording",
+                       description="Write a result JSON and the bundle it was computed from as a ROS 2 bag (vision_msgs "
+                       "detections, markers, the labelled point cloud, camera frames; metres), PLY files (one per "
+                       "object and one coloured with all) or a Rerun recording (pip install 'shadowcorr[viz]'). "
+                       "See docs/guide/exports.md.")
+    p.add_argument("result", help="result JSON (shadowcorr correspond --out, or the service's answer)")
+    p.add_argument("bundle", help="the bundle the result was computed from (as for correspond)")
+    p.add_argument("out", help="bag or PLY directory, or .rrd file, to create (never overwritten)")
+    p.add_argument("--to", required=True, choices=["bag", "ply", "rrd"], help="the format to write")
+    p.add_argument("--cameras", type=parse_cameras, help="cameras of an Unreal-layout directory (as for correspond)")
+    p.add_argument("--frame-id", default="map", help="world frame of the bag's messages (default %(default)s)")
+    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="the bag's storage (default %(default)s)")
+    p.set_defaults(func=cmd_export)
+
     p = sub.add_parser("eval", help="metrics over one scene or a directory of scenes (mean ± std)",
                        description="Quality metrics against ground truth, per scene and as mean ± std.")
     p.add_argument("source", help="bundle, directory of bundles, or Unreal-layout dataset directory")
@@ -459,17 +473,3 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
-    p = sub.add_parser("export", help="a result as a ROS 2 bag, PLY files or a Rerun recording",
-                       description="Write a result JSON and the bundle it was computed from as a ROS 2 bag (vision_msgs "
-                       "detections, markers, the labelled point cloud, camera frames; metres), PLY files (one per "
-                       "object and one coloured with all) or a Rerun recording (pip install 'shadowcorr[viz]'). "
-                       "See docs/guide/exports.md.")
-    p.add_argument("result", help="result JSON (shadowcorr correspond --out, or the service's answer)")
-    p.add_argument("bundle", help="the bundle the result was computed from (as for correspond)")
-    p.add_argument("out", help="bag or PLY directory, or .rrd file, to create (never overwritten)")
-    p.add_argument("--to", required=True, choices=["bag", "ply", "rrd"], help="the format to write")
-    p.add_argument("--cameras", type=parse_cameras, help="cameras of an Unreal-layout directory (as for correspond)")
-    p.add_argument("--frame-id", default="map", help="world frame of the bag's messages (default %(default)s)")
-    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="the bag's storage (default %(default)s)")
-    p.set_defaults(func=cmd_export)
-
