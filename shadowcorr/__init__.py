@@ -9,7 +9,7 @@ The library is a pipeline of stages with plain data between them::
 The default method ``fused`` reads both the cross-view surface evidence and the network's
 volumetric evidence; ``ShadowCorrConfig.method`` selects another.
 
-``correspond(bundle)`` runs them all.  The stages themselves are in :mod:`shadowcorr.stages`,
+``correspond(bundle)`` runs them all; ``SiteMap`` keeps a site's objects across scans.  The stages themselves are in :mod:`shadowcorr.stages`,
 numbered in the order they run, and :mod:`shadowcorr.pipeline` composes them; see
 ``docs/ARCHITECTURE.md``, ``docs/CONTRACTS.md`` and the README.
 
@@ -58,6 +58,10 @@ _EXPORTS = {
     "SegmentLabel": "result",
     "ViewPoseCorrection": "result",
     "VoxelScene": "stages",
+    "SiteMap": "sitemap",
+    "MapUpdate": "sitemap",
+    "MapBusyError": "sitemap",
+    "add_to_map": "sitemap",
 }
 
 __all__ = ["__version__", *sorted(_EXPORTS)]
@@ -72,5 +76,6 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from .nn import Model, ModelCard, load_model, save_model
     from .pipeline import assign, correspond, embed, object_points, prepare
     from .result import ObjectSummary, OrientedBox, Result, SegmentLabel, ViewPoseCorrection
+    from .sitemap import MapBusyError, MapUpdate, SiteMap, add_to_map
     from .stages import ObjectPoints, VoxelScene, refine_poses
     from .export import export

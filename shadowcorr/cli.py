@@ -1,4 +1,4 @@
-"""The ``shadowcorr`` command line: convert, correspond, eval, synth, train, render, serve.
+"""The ``shadowcorr`` command line: convert, correspond, export, eval, map, synth, train, render, serve.
 
 Start-up is kept light: this module imports only the standard library, each command
 imports what it needs when it runs, and the plugin subcommands (see pyproject's
@@ -315,6 +315,109 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 1 if failures or not rows else 0
 
 
+def _map_options(args: argparse.Namespace) -> "ShadowCorrConfig | None":
+    """The settings ``map add`` was given explicitly (None: the map's own, or the defaults for a new map)."""
+    from .config import ShadowCorrConfig
+
+    options: dict[str, object] = {"num_threads": args.threads}
+    if args.refine_poses is not None:
+        options["refine_poses"] = args.refine_poses
+    if args.min_blob_pixels is not None:
+        options["min_blob_pixels"] = args.min_blob_pixels
+    return ShadowCorrConfig(**options)
+
+
+def cmd_map_add(args: argparse.Namespace) -> int:
+    from .sitemap import MapBusyError
+
+    try:
+        return _map_add(args)
+    except MapBusyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+
+
+def _map_add(args: argparse.Namespace) -> int:
+    from .sitemap import SiteMap
+
+    sources = [(name, load) for source in args.bundles for name, load in iter_scenes(Path(source), args.cameras)]
+    model = _model(argparse.Namespace(method="fused", model=args.model, device=args.device, threads=args.threads))
+    out = open(args.out, "w") if args.out else None  # noqa: SIM115 - written update by update, closed below
+    try:
+        with SiteMap(args.map, _map_options(args), model=model) as site:
+            for name, load in sources:
+                update = site.add(load(), name=name)
+                text = update.model_dump_json(indent=None if len(sources) > 1 or not out else 1)
+                counts = {k: sum(e.kind == k for e in update.events) for k in ("created", "observed", "merged", "split",
+                                                                              "retired")}
+                summary = (f"scan {update.scan} ({name}): {len(update.segments)} segments, linked to "
+                           f"{len(update.linked_views)} stored views; " +
+                           ", ".join(f"{n} {k}" for k, n in counts.items() if n) +
+                           f"; {update.timings_ms['total']:.0f} ms")
+                if out:
+                    out.write(text + "\n")
+                    out.flush()  # a later scan's failure leaves the earlier updates written
+                    print(summary)
+                else:
+                    print(text)
+                    print(summary, file=sys.stderr)
+                for w in update.warnings:
+                    print(f"warning: {w}", file=sys.stderr)
+    finally:
+        if out:
+            out.close()
+    if args.out:
+        print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_map_show(args: argparse.Namespace) -> int:
+    from .sitemap import SiteMap
+
+    if not Path(args.map).is_file():
+        raise FileNotFoundError(f"{args.map}: no such map")
+    with SiteMap(args.map, create=False) as site:
+        state = site.state()
+    text = state.model_dump_json(indent=1)
+    if args.out:
+        Path(args.out).write_text(text)
+        print(f"{len(state.scans)} scans, {len(state.objects)} objects, {len(state.segments)} segments, "
+              f"{len(state.events)} events; wrote {args.out}")
+    else:
+        print(text)
+    return 0
+
+
+def _add_map_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("map", help="a site map that grows scan by scan: stable object ids and their history",
+                       description="A site map (one SQLite file): each scan added gets the ids of the objects it "
+                                   "sees again, and every revision of an object is an event.")
+    cmds = p.add_subparsers(dest="map_command", required=True, metavar="{add,show}")
+    add = cmds.add_parser("add", help="add scans to a map (created when absent)",
+                          description="Add each bundle as one scan (one update each, in order). With --out, one "
+                                      "update JSON per scan (JSON lines when there are several); without, they are "
+                                      "printed.")
+    add.add_argument("map", help="the map file (created when absent)")
+    add.add_argument("bundles", nargs="+", metavar="BUNDLE",
+                     help="bundle directory or archive, a ROS bag, or an Unreal-layout directory (each scene is a scan)")
+    add.add_argument("--cameras", type=parse_cameras, help="cameras to use from an Unreal-layout directory")
+    add.add_argument("--out", help="write the update JSON here (JSON lines for several bundles)")
+    add.add_argument("--model", help="model file (.safetensors or reference .pth); default: the packaged model")
+    add.add_argument("--min-blob-pixels", type=int, help="a new map: ignore blobs with fewer pixels (default 50)")
+    add.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
+                     help="a new map: register each scan's depth with the map's views and correct its poses "
+                          "(default on)")
+    add.add_argument("--device", default="cpu", type=_device, help="torch device of the network (default cpu)")
+    add.add_argument("--threads", type=_threads, default=0, help="threads (0: every core; default 0)")
+    add.set_defaults(func=cmd_map_add)
+    show = cmds.add_parser("show", help="print or write the whole map as JSON",
+                           description="The map as JSON: scans, objects, every segment with its current object, "
+                                       "and the events.")
+    show.add_argument("map", help="the map file")
+    show.add_argument("--out", help="write the map JSON here (default: print it)")
+    show.set_defaults(func=cmd_map_show)
+
+
 def positive_int(text: str) -> int:
     """An argparse type: a whole number >= 1."""
     try:
@@ -428,6 +531,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_method_options(p)
     p.set_defaults(func=cmd_eval)
+
+    _add_map_parser(sub)
 
     for command in _plugin_commands():
         command.load()(sub)

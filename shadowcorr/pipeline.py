@@ -19,7 +19,7 @@ from .errors import SceneLimitError
 from .nn import Model, load_model
 from .result import ModelInfo, Result
 from .stages._01_poses import pose_warnings, refine_poses
-from .stages._02_segments import check_valid_depth, extract_segments
+from .stages._02_segments import Segments, check_valid_depth, extract_segments
 from .stages._03_surface_evidence import surface_evidence
 from .stages._04_shells import raw_shells, segment_shells
 from .stages._05_occupancy import shadow_occupancy
@@ -32,8 +32,8 @@ from .stages._09_support import segment_support
 from .stages._10_assignment import evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote
 from .stages._11_geometry import ObjectPoints, fuse_object_points, object_geometry, with_geometry
 
-__all__ = ["assign", "baseline_embeddings", "check_compatible", "correspond", "embed", "model_info", "object_points", "prepare",
-           "with_pose_corrections"]
+__all__ = ["assign", "baseline_embeddings", "check_compatible", "correspond", "cut_segments", "embed", "model_info",
+           "object_points", "prepare", "prepare_segments", "with_pose_corrections"]
 
 
 def _ms_since(t0: float) -> float:
@@ -68,7 +68,20 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
         bundle, poses = refine_poses(bundle, config)
         timings["poses"] = _ms_since(t0)
         _check_stage_time(timings, config)
-    t0 = time.perf_counter()  # 02
+    segments, depth_warnings = cut_segments(bundle, config, timings)  # 02
+    scene = prepare_segments(bundle, segments, config, timings)  # 03-06
+    scene.poses = poses
+    # Segments without depth first: they say the most about whether the result can be trusted.
+    scene.warnings[:0] = depth_warnings + list(bundle.warnings) + (pose_warnings(poses) if poses else [])
+    return scene
+
+
+def cut_segments(bundle: SceneBundle, config: ShadowCorrConfig, timings: dict[str, float] | None = None
+                 ) -> tuple[Segments, list[str]]:
+    """Stage 02 with the checks every scene passes: at least one segment, at most ``max_segments``,
+    enough valid depth (:class:`DepthRangeError` otherwise).  Returns the segments and the depth warnings."""
+    timings = {} if timings is None else timings
+    t0 = time.perf_counter()
     segments = extract_segments(bundle, config)
     if segments.num_segments == 0:
         raise ValueError(
@@ -80,6 +93,19 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     depth_warnings = check_valid_depth(segments, bundle.units, config)  # DepthRangeError when nearly all are empty
     timings["segments"] = _ms_since(t0)
     _check_stage_time(timings, config)
+    return segments, depth_warnings
+
+
+def prepare_segments(bundle: SceneBundle, segments: Segments, config: ShadowCorrConfig,
+                     timings: dict[str, float] | None = None) -> VoxelScene:
+    """Stages 03-06 on segments already cut: surface evidence, shells, shadows, the voxel scene.
+
+    ``bundle`` supplies what the cross-view evidence reads of every view of ``segments``
+    (depth, intrinsics, pose), in the same order; the segments may come from elsewhere than its
+    masks (the site map adds the stored segments of earlier scans).  ``segments.pixel_segment``
+    is released once the surface evidence has read it.
+    """
+    timings = {} if timings is None else timings
     surface = None
     if config.method in SURFACE_METHODS:  # 03
         t0 = time.perf_counter()
@@ -109,9 +135,6 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
     scene.surface = surface
     scene.occupancy = occupancy if occupancy.cell.size else None
     scene.view_poses = np.stack([v.pose for v in bundle.views])
-    scene.poses = poses
-    # Segments without depth first: they say the most about whether the result can be trusted.
-    scene.warnings[:0] = depth_warnings + list(bundle.warnings) + (pose_warnings(poses) if poses else [])
     return scene
 
 

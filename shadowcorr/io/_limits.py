@@ -12,7 +12,8 @@ MEMBER_RATIO_MIN_BYTES = 1 * MiB
 
 
 class BundleLimits(BaseModel):
-    """Resource limits applied while loading one bundle (defaults suit the HTTP service)."""
+    """Resource limits applied while loading one bundle (defaults suit the HTTP service; :meth:`local`
+    is what the library and the command line apply to a user's own files)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -37,3 +38,17 @@ class BundleLimits(BaseModel):
         20_000_000, ge=1,
         description="point-segment bundles: total points, checked from the array header before it is decompressed",
     )
+
+    @classmethod
+    def local(cls) -> "BundleLimits":
+        """No limit on views, pixels, files, bytes, segments or points: the limits protect a shared
+        server from its clients, not a user's own machine from the user's own data.  The archive's
+        safety checks stay (paths inside the bundle, no links, the compression-ratio check of zip bombs)."""
+        unlimited = 1 << 62
+        return cls(max_views=unlimited, max_pixels_per_view=unlimited, max_total_bytes=unlimited, max_files=unlimited,
+                   max_manifest_bytes=LOCAL_MAX_MANIFEST_BYTES, max_scene_pixels=unlimited, max_segments=unlimited,
+                   max_scene_points=unlimited)
+
+
+#: A manifest is read into memory whole: even a user's own is bounded (about 200,000 views).
+LOCAL_MAX_MANIFEST_BYTES = 256 * MiB

@@ -114,9 +114,10 @@ def load_bundle_from_parts(
     This is what the HTTP service uses for multipart uploads (one part per file, the
     part's filename = the path in the manifest).  Keys are normalised like manifest
     paths; unsafe keys are problems.  Raises ``BundleError`` listing every problem, or
-    ``SceneLimitError`` as :func:`load_bundle` does.
+    ``SceneLimitError`` as :func:`load_bundle` does.  ``limits`` defaults to
+    :meth:`BundleLimits.local` (a server passes its own).
     """
-    limits = limits or BundleLimits()
+    limits = limits or BundleLimits.local()
     problems: list[Problem] = []
     norm: dict[str, bytes] = {}
     total = 0
@@ -146,8 +147,10 @@ def load_bundle(source: str | Path | bytes, *, limits: BundleLimits | None = Non
     Raises ``BundleError`` (a ``ValueError``) whose ``.problems`` lists every problem found,
     or :class:`~shadowcorr.errors.SceneLimitError` for a scene larger than ``limits`` allow
     (``max_scene_pixels``, ``max_scene_points``), before the images or points are decoded.
+    ``limits`` defaults to :meth:`BundleLimits.local`: a user's own files are loaded whatever their
+    size (the HTTP service passes its own limits).
     """
-    limits = limits or BundleLimits()
+    limits = limits or BundleLimits.local()
     if isinstance(source, (bytes, bytearray, memoryview)):
         data = bytes(source)
         return _load_archive(io.BytesIO(data), len(data), limits)

@@ -1,0 +1,117 @@
+"""Which stored views a new scan is linked to, and the poses it is linked with.
+
+**Views that see the same ground.**  Each view's footprint is the bounding box of its segments'
+points (widened by ``FOOTPRINT_MARGIN_VOXELS`` voxels), indexed by the map's cells, so finding
+the stored views whose footprint meets a new view's costs what the neighbourhood holds, not what
+the map holds.  Of those, a stored view is linked when its frustum holds a centroid of a new
+segment or a new view's frustum holds one of its segment centroids (in front of the camera,
+inside the image, within ``max_depth``); the ``max_views`` with most such centroids are kept.
+
+**Poses.**  With ``refine_poses`` the new views are registered together with the linked stored
+views (the stage's :func:`~shadowcorr.stages.refine_poses`, unchanged; stored views bring their
+coarse depth).  Registration corrects every view of a connected group so that the group's
+corrections average zero; the map's views are the reference, so every correction of a group
+that holds stored views is taken relative to the stored views' mean correction (rotations
+averaged as quaternions): stored poses stay exactly as stored, and the new views move onto them.
+A group of new views only keeps its own corrections.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..bundle import SceneBundle, View
+from ..result import ViewPoseCorrection
+
+__all__ = ["FOOTPRINT_MARGIN_VOXELS", "anchor_corrections", "corrected_report", "footprints", "in_frustum", "rank_views"]
+
+#: A footprint is widened by this many voxels: the two sides of one rock, seen from opposite
+#: views, are two boxes that may only touch.
+FOOTPRINT_MARGIN_VOXELS = 4
+
+
+def footprints(points: np.ndarray, view: np.ndarray, lengths: np.ndarray, num_views: int
+               ) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """Per view the bounding box of its segments' points (None for a view without points)."""
+    point_view = np.repeat(view, lengths)
+    out: list[tuple[np.ndarray, np.ndarray] | None] = []
+    for j in range(num_views):
+        pts = points[point_view == j]
+        out.append((pts.min(axis=0), pts.max(axis=0)) if pts.size else None)
+    return out
+
+
+def in_frustum(points: np.ndarray, pose: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int,
+               height: int, max_depth: float) -> np.ndarray:
+    """Which world points (map units) a camera sees: in front, inside the image, within ``max_depth``."""
+    cam = (points - pose[:3, 3]) @ pose[:3, :3]
+    z = cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = fx * cam[:, 0] / z + cx
+        v = fy * cam[:, 1] / z + cy
+    return (z > 0) & (z <= max_depth) & (u >= -0.5) & (u < width - 0.5) & (v >= -0.5) & (v < height - 0.5)
+
+
+def rank_views(new_cams: list[tuple], new_centroids: np.ndarray, stored_cams: dict[int, tuple],
+               stored_centroids: dict[int, np.ndarray], max_depth: float, max_views: int) -> list[int]:
+    """Stored views (ids) linked to the new views, most shared centroids first, at most ``max_views``.
+
+    ``*_cams``: per view ``(pose, fx, fy, cx, cy, width, height)``; ``new_centroids``: the new
+    segments' centroids; ``stored_centroids``: per stored view its segments' centroids.
+    """
+    scores = []
+    for view, cam in stored_cams.items():
+        theirs = stored_centroids.get(view, np.zeros((0, 3)))
+        shared = int(in_frustum(new_centroids, *cam, max_depth).sum()) if new_centroids.size else 0
+        for new in new_cams:
+            shared += int(in_frustum(theirs, *new, max_depth).sum()) if theirs.size else 0
+        if shared:
+            scores.append((-shared, view))
+    return [view for _, view in sorted(scores)[:max_views]]
+
+
+def anchor_corrections(bundle: SceneBundle, reports: list[ViewPoseCorrection], num_new: int
+                       ) -> list[np.ndarray | None]:
+    """Every view's correction relative to the stored views of its registration group (see the module
+    docstring): the first ``num_new`` views of ``bundle`` are new, the others stored.  None where the
+    view keeps its pose (not corrected, or the reference of a group of one stored view)."""
+    n = len(bundle.views)
+    names = {v.name: k for k, v in enumerate(bundle.views)}
+    parent = list(range(n))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for k, report in enumerate(reports):
+        for other in report.neighbours:
+            parent[root(k)] = root(names[other])
+    corrections = [np.asarray(r.correction, dtype=np.float64) for r in reports]
+    corrected = [r.status == "corrected" for r in reports]
+    out: list[np.ndarray | None] = [None] * n
+    for group in {root(k) for k in range(n) if corrected[k]}:
+        members = [k for k in range(n) if corrected[k] and root(k) == group]
+        anchors = [k for k in members if k >= num_new]
+        reference = np.eye(4)
+        if anchors:
+            reference[:3, :3] = Rotation.from_matrix(np.stack([corrections[k][:3, :3] for k in anchors])).mean().as_matrix()
+            reference[:3, 3] = np.mean([corrections[k][:3, 3] for k in anchors], axis=0)
+        for k in members:
+            relative = np.linalg.solve(reference, corrections[k])
+            if not np.allclose(relative, np.eye(4), atol=1e-12):
+                out[k] = relative
+    return out
+
+
+def corrected_report(report: ViewPoseCorrection, view: View, correction: np.ndarray | None) -> ViewPoseCorrection:
+    """A view's report with its correction relative to the map (``anchor_corrections``)."""
+    if correction is None:
+        return report
+    moved = correction @ view.pose
+    return report.model_copy(update={
+        "correction": correction.round(9).tolist(),
+        "rotation_deg": round(float(np.degrees(Rotation.from_matrix(correction[:3, :3]).magnitude())), 4),
+        "translation": round(float(np.linalg.norm(moved[:3, 3] - view.pose[:3, 3])), 4)})

@@ -1,0 +1,149 @@
+"""Groups of one linking run -> the map's object ids, revised only where the run's new segments say so.
+
+A run groups the new scan's segments together with the stored segments of the map's views
+that see the same ground.  Its groups are read against the objects those stored segments
+already belong to:
+
+1. **Homes.**  Each object present in the run gets at most one group, and each group at most
+   one object: the assignment that keeps the most stored segments where they are (Hungarian
+   method on the counts of each object's stored segments in each group).  An object keeps
+   its id; the group it is assigned to is its home.
+2. **New segments.**  Only groups holding at least one new segment carry new evidence.  Their
+   new segments take the group's owner (``observed``); a group with new segments and no
+   owner becomes a new object (``created``) - unless it holds stored segments none of which
+   may move (below), in which case its new segments join the object most of those belong to.
+3. **Revisions.**  A stored segment in a group with new segments whose owner is another object
+   moves there when its evidence margin in the run exceeds ``min_margin``.  When every stored
+   segment of an object that lost its home moves to one object, the two were one rock:
+   ``merged`` (the owner survives, the other id is retired and all its segments, in views
+   the run did not load too, take the survivor's id).  Otherwise each move is a ``split`` of
+   the object into the one it joins, and an object left without segments is ``retired``.
+
+Stored segments in groups without new segments never change: what the run re-read of
+evidence already in the map is not new evidence.  Nothing here reads ground truth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+
+@dataclass
+class Revision:
+    """One event of an update, on run segment indices (the store maps them to segment ids)."""
+
+    kind: str  # created | observed | merged | split | retired
+    object: int
+    into: int | None = None
+    segments: list[int] = field(default_factory=list)  # new segments that carry the evidence
+    moved: list[int] = field(default_factory=list)  # stored segments whose object changes
+    margin: float | None = None  # the weakest evidence margin among segments and moved
+
+
+@dataclass
+class RevisionPlan:
+    """The object of every run segment after the update, and the events that say why."""
+
+    segment_object: np.ndarray  # (N,) object id of every run segment (new ids from ``first_new_object``)
+    events: list[Revision]
+    merged_into: dict[int, int]  # retired object -> survivor: every segment of it, stored anywhere, moves
+    created: list[int]  # the new object ids
+    retired: list[int]  # objects that lost their last segment (merged ones included)
+
+
+def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, margin: np.ndarray,
+           segments_in_map: dict[int, int], first_new_object: int, min_margin: float = 0.0) -> RevisionPlan:
+    """Object ids for the segments of one run (see the module docstring).
+
+    ``group``: the run's group of each segment; ``is_new``: the segment belongs to the scan being
+    added; ``stored_object``: the current object of each stored segment (ignored for new ones);
+    ``margin``: each segment's evidence margin in the run (its group's linkage over the best
+    alternative); ``segments_in_map``: how many segments each object present in the run has in
+    the whole map (to tell when one is left empty); ``first_new_object``: the id a created
+    object gets first.
+    """
+    group = np.asarray(group, dtype=np.int64)
+    is_new = np.asarray(is_new, dtype=bool)
+    stored_object = np.where(is_new, -1, np.asarray(stored_object, dtype=np.int64))
+    margin = np.asarray(margin, dtype=np.float64)
+    n = group.size
+    # Groups in order of their first segment, so that ids and events do not depend on label values.
+    _, first_index, group_of = np.unique(group, return_index=True, return_inverse=True)
+    order = np.argsort(first_index, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    group_of = rank[group_of]
+    num_groups = order.size
+
+    stored = np.flatnonzero(~is_new)
+    objects, object_of = np.unique(stored_object[stored], return_inverse=True)
+    counts = np.zeros((num_groups, objects.size))
+    np.add.at(counts, (group_of[stored], object_of), 1.0)
+    owner = np.full(num_groups, -1, dtype=np.int64)
+    home = np.full(objects.size, -1, dtype=np.int64)
+    if objects.size:
+        rows, cols = linear_sum_assignment(counts, maximize=True)
+        kept = counts[rows, cols] > 0
+        owner[rows[kept]] = objects[cols[kept]]
+        home[cols[kept]] = rows[kept]
+
+    has_new = np.bincount(group_of[is_new], minlength=num_groups) > 0
+    movable = ~is_new & (margin > min_margin)
+    target = owner.copy()
+    next_object = first_new_object
+    created: list[int] = []
+    for g in np.flatnonzero(has_new & (owner < 0)).tolist():
+        members = np.flatnonzero(group_of == g)
+        old = members[~is_new[members]]
+        if old.size and not movable[old].any():
+            values, votes = np.unique(stored_object[old], return_counts=True)
+            target[g] = values[np.argmax(votes)]  # ties: the smaller (older) id
+        else:
+            target[g] = next_object
+            created.append(next_object)
+            next_object += 1
+
+    out = stored_object.copy()
+    out[is_new] = target[group_of[is_new]]
+    moves = np.flatnonzero(movable & has_new[group_of] & (target[group_of] != stored_object))
+    out[moves] = target[group_of[moves]]
+
+    events: list[Revision] = []
+    weakest = lambda idx: float(margin[idx].min()) if len(idx) else None  # noqa: E731 - a one-line reducer
+
+    def causing(groups: np.ndarray) -> list[int]:
+        return np.flatnonzero(is_new & np.isin(group_of, groups)).tolist()
+
+    created_set = set(created)
+    for obj in dict.fromkeys(target[group_of[np.flatnonzero(is_new)]].tolist()):  # first-seen order
+        new_segments = np.flatnonzero(is_new & (out == obj)).tolist()
+        kind = "created" if obj in created_set else "observed"
+        events.append(Revision(kind, obj, segments=new_segments, margin=weakest(new_segments)))
+
+    merged_into: dict[int, int] = {}
+    retired: list[int] = []
+    for k, obj in enumerate(objects.tolist()):
+        mine = stored[object_of == k]
+        gone = mine[out[mine] != obj]
+        if gone.size == 0:
+            continue
+        destinations = np.unique(out[gone])
+        if home[k] < 0 and gone.size == mine.size and destinations.size == 1:
+            into = int(destinations[0])
+            evidence = causing(np.unique(group_of[gone]))
+            merged_into[obj] = into
+            retired.append(obj)
+            events.append(Revision("merged", obj, into, evidence, gone.tolist(), weakest(np.r_[evidence, gone])))
+            continue
+        for into in destinations.tolist():
+            moved = gone[out[gone] == into]
+            evidence = causing(np.unique(group_of[moved]))
+            events.append(Revision("split", obj, into, evidence, moved.tolist(), weakest(np.r_[evidence, moved])))
+        if segments_in_map.get(obj, mine.size) - gone.size <= 0:
+            retired.append(obj)
+            events.append(Revision("retired", obj, segments=[], moved=gone.tolist(), margin=weakest(gone)))
+    assert out.size == n
+    return RevisionPlan(out, events, merged_into, created, retired)

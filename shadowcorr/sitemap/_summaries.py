@@ -1,0 +1,173 @@
+"""Per-view summaries: what the map keeps of a view instead of its images, and the views they stand in for.
+
+A view's summary is its pose, intrinsics and image size; its depth and its image of segment
+indices read every ``stride``-th pixel per axis (the pixel at ``stride * i + stride // 2``), so
+that the long side keeps at most :data:`SUMMARY_SIDE` pixels; and per segment its points
+averaged on the downsampling grid (``downsample_size``).  Read back, a summary is an ordinary
+:class:`~shadowcorr.bundle.View` with the coarser image's intrinsics, and its segments are
+ordinary :class:`~shadowcorr.stages.Segments`: the stages that link a new scan to the map
+read stored views exactly as they read the scan's own (their masks are coarser, their points
+fewer).  Lengths are in the map's units (the configuration's).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..bundle import Intrinsics, SceneBundle, View
+from ..stages import SegmentImage, Segments, voxel_downsample
+from ._store import unpack_array
+
+__all__ = ["SUMMARY_SIDE", "StoredViews", "ViewSummary", "summarize_views", "stored_views"]
+
+#: The long side of a summary image, at most (480 for a 1920 x 1080 view: every 4th pixel).
+SUMMARY_SIDE = 480
+
+
+@dataclass
+class ViewSummary:
+    """What the map stores of one view of a new scan."""
+
+    name: str
+    pose: np.ndarray  # (4, 4) camera-to-world, map units
+    intrinsics: tuple[float, float, float, float, int, int]  # fx, fy, cx, cy, width, height of the full image
+    stride: int
+    depth: np.ndarray  # (h, w) depth on the summary grid, map units, 0 = invalid
+    labels: np.ndarray  # window of the segment index (within the view) on the summary grid, -1 = none
+    labels_top: int
+    labels_left: int
+    lo: np.ndarray | None  # footprint: bounding box of the view's segment points (None: no points)
+    hi: np.ndarray | None
+
+
+def summary_stride(width: int, height: int) -> int:
+    return max(1, math.ceil(max(width, height) / SUMMARY_SIDE))
+
+
+def summarize_views(bundle: SceneBundle, segments: Segments, images: list[SegmentImage | None],
+                    max_depth: float) -> list[ViewSummary]:
+    """The summary of every view of ``bundle`` (map units), whose segments are ``segments``
+    (``images``: their segment-index images, as cut)."""
+    out = []
+    first = np.searchsorted(segments.view, np.arange(len(bundle.views)))
+    for j, view in enumerate(bundle.views):
+        k = view.intrinsics
+        f = summary_stride(k.width, k.height)
+        rows = np.arange(f // 2, k.height, f)
+        cols = np.arange(f // 2, k.width, f)
+        depth = np.asarray(view.depth[np.ix_(rows, cols)], dtype=np.float32)
+        depth = np.where(np.isfinite(depth) & (depth > 0) & (depth <= max_depth), depth, 0.0)
+        depth = depth.astype(np.float16) if depth.max(initial=0.0) < 6e4 else depth
+        labels = images[j].at(rows[:, None], cols[None, :]) if images[j] is not None else np.full(depth.shape, -1)
+        labels = np.where(labels >= 0, labels - first[j], -1)
+        on = np.argwhere(labels >= 0)
+        if on.size:
+            (top, left), (bottom, right) = on.min(axis=0), on.max(axis=0) + 1
+        else:
+            top = left = bottom = right = 0
+        window = labels[top:bottom, left:right]
+        window = window.astype(np.int16 if window.size == 0 or window.max() < np.iinfo(np.int16).max else np.int32)
+        mine = np.repeat(segments.view == j, segments.lengths)
+        pts = segments.points[mine]
+        lo, hi = (pts.min(axis=0), pts.max(axis=0)) if pts.size else (None, None)
+        out.append(ViewSummary(view.name, view.pose.copy(), (k.fx, k.fy, k.cx, k.cy, k.width, k.height), f, depth,
+                               window, int(top), int(left), lo, hi))
+    return out
+
+
+def segment_points(segments: Segments, cell: float) -> list[np.ndarray]:
+    """Each segment's points averaged per ``cell`` grid cell, float32 (what the map keeps of them)."""
+    pts, seg = voxel_downsample(segments.points, segments.segment_index, cell)
+    counts = np.bincount(seg, minlength=segments.num_segments)
+    return np.split(pts.astype(np.float32), np.cumsum(counts)[:-1])
+
+
+@dataclass
+class StoredViews:
+    """Stored views read back: views (coarse images), their segments, and where each came from."""
+
+    views: list[View]
+    segments: Segments
+    view_ids: np.ndarray  # (V,) map id of each view
+    view_scans: np.ndarray  # (V,) the scan that added it
+    view_names: list[str]  # as named in their scan
+    segment_ids: np.ndarray  # (S,) map id of each segment
+    segment_objects: np.ndarray  # (S,) current object of each segment
+
+
+def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
+    """Views and segments of the map (rows of ``views`` and ``segments``, both ordered by view)."""
+    views, images = [], []
+    by_view: dict[int, list] = {}
+    for r in segment_rows:
+        by_view.setdefault(r["view"], []).append(r)
+    points, lengths, view_idx, instance, component, pixels, centres, axes, seg_ids, objects = ([] for _ in range(10))
+    for j, r in enumerate(view_rows):
+        pose = unpack_array(r["pose"], "float64", "4,4").copy()
+        f = int(r["stride"])
+        depth = unpack_array(r["depth"], r["depth_dtype"], r["depth_shape"], compressed=True)
+        window = unpack_array(r["labels"], r["labels_dtype"], r["labels_shape"], compressed=True)
+        h, w = depth.shape
+        k = Intrinsics(fx=r["fx"] / f, fy=r["fy"] / f, cx=(r["cx"] - f // 2) / f, cy=(r["cy"] - f // 2) / f,
+                       width=w, height=h)
+        rows = by_view.get(r["view"], [])
+        inst = np.array([s["instance"] for s in rows], dtype=np.int64)
+        mask = np.zeros((h, w), dtype=np.int32)  # mask ids for pose registration's agreement check
+        top, left = int(r["labels_top"]), int(r["labels_left"])
+        if window.size and inst.size:
+            mask[top:top + window.shape[0], left:left + window.shape[1]] = np.where(window >= 0, inst[window], 0)
+        views.append(View(name=f"{r['scan']}/{r['name']}", pose=pose, intrinsics=k, depth=depth, mask=mask))
+        images.append(SegmentImage(np.array(window), top, left, (h, w)))
+        for s in rows:
+            p = unpack_array(s["points"], s["points_dtype"], s["points_shape"])
+            points.append(p)
+            lengths.append(p.shape[0])
+            view_idx.append(j)
+            instance.append(s["instance"])
+            component.append(s["component"])
+            pixels.append(s["num_pixels"])
+            centres.append(pose[:3, 3])
+            axes.append(pose[:3, 2])
+            seg_ids.append(s["segment"])
+            objects.append(s["object"])
+    lengths_a = np.asarray(lengths, dtype=np.int64)
+    view_a = np.asarray(view_idx, dtype=np.int64)
+    first = np.searchsorted(view_a, np.arange(len(view_rows)))
+    segments = Segments(
+        points=np.concatenate(points).astype(np.float64) if points else np.zeros((0, 3)),
+        lengths=lengths_a,
+        view=view_a,
+        instance=np.asarray(instance, dtype=np.int64),
+        component=np.asarray(component, dtype=np.int64),
+        num_pixels=np.asarray(pixels, dtype=np.int64),
+        camera_center=np.asarray(centres, dtype=np.float64).reshape(-1, 3),
+        optical_axis=np.asarray(axes, dtype=np.float64).reshape(-1, 3),
+        view_names=[v.name for v in views],
+        pixel_segment=[img.shifted(int(first[j])) for j, img in enumerate(images)],
+    )
+    return StoredViews(views, segments, np.array([r["view"] for r in view_rows], dtype=np.int64),
+                       np.array([r["scan"] for r in view_rows], dtype=np.int64), [r["name"] for r in view_rows],
+                       np.asarray(seg_ids, dtype=np.int64), np.asarray(objects, dtype=np.int64))
+
+
+def join_segments(first: Segments, second: Segments) -> Segments:
+    """The segments of two sets of views as one batch: ``second``'s views follow ``first``'s."""
+    offset_views, offset_segments = len(first.view_names), first.num_segments
+    images = [*(first.pixel_segment or [None] * offset_views),
+              *[None if img is None else img.shifted(offset_segments) for img in
+                (second.pixel_segment or [None] * len(second.view_names))]]
+    return Segments(
+        points=np.concatenate([first.points, second.points]),
+        lengths=np.concatenate([first.lengths, second.lengths]),
+        view=np.concatenate([first.view, second.view + offset_views]),
+        instance=np.concatenate([first.instance, second.instance]),
+        component=np.concatenate([first.component, second.component]),
+        num_pixels=np.concatenate([first.num_pixels, second.num_pixels]),
+        camera_center=np.concatenate([first.camera_center, second.camera_center]),
+        optical_axis=np.concatenate([first.optical_axis, second.optical_axis]),
+        view_names=[*first.view_names, *second.view_names],
+        pixel_segment=images,
+    )
