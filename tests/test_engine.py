@@ -445,6 +445,11 @@ def test_baseline_method_runs_without_a_model():
     result = correspond(bundle, None, ShadowCorrConfig(method="meanshift"))
     assert result.method == "meanshift" and result.model is None
     assert len(result.segments) == 8
+    # It finds the two spheres (in the sphere scenes a mask id is its sphere) ...
+    assert same_partition(result.labels, [s.instance for s in result.segments]) and len(result.objects) == 2
+    # ... and a model, when one is given, changes nothing.
+    with_model = correspond(bundle, load_model(), ShadowCorrConfig(method="meanshift"))
+    assert [s.model_dump() for s in with_model.segments] == [s.model_dump() for s in result.segments]
 
 
 def test_real_sample_scene_with_reference_checkpoint():
