@@ -138,12 +138,19 @@ def test_threads_option_gives_the_same_labels_and_refuses_negative_counts(small_
     assert "expected a thread count" in capsys.readouterr().err
 
 
-def test_eval_table_header_is_not_cut(small_bundle, capsys) -> None:
-    assert main(["eval", str(small_bundle), "--quiet"]) == 0
-    header = capsys.readouterr().out.splitlines()[0]
-    for label in EVAL_COLUMNS.values():
-        assert label in header
-    assert "perfect 1:1 share" in header and "voxel ARI" in header
+def test_eval_table_shows_each_metric_under_its_uncut_header(small_bundle, capsys) -> None:
+    # A bandwidth that merges the two spheres: metrics that differ from column to column.
+    options = ["--method", "meanshift", "--bandwidth", "2"]
+    assert main(["eval", str(small_bundle), "--quiet", *options]) == 0
+    header, row = capsys.readouterr().out.splitlines()[:2]
+    assert main(["correspond", str(small_bundle), *options]) == 0
+    metrics = json.loads(capsys.readouterr().out)["metrics"]
+    assert metrics["rock_purity"] != metrics["cluster_purity"]
+    # Each column is 18 characters wide after the 24 of the scene name, label and value alike.
+    for i, (key, label) in enumerate(EVAL_COLUMNS.items()):
+        column = slice(24 + 18 * i, 24 + 18 * (i + 1))
+        assert header[column].strip() == label
+        assert float(row[column]) == pytest.approx(metrics[key], abs=1e-4), key
 
 
 @pytest.mark.slow
