@@ -2,7 +2,9 @@
 
 Routes:
 
-* ``POST /correspond`` -- one scene in (multipart form or bare archive), Result JSON out.
+* ``POST /correspond`` -- one scene in (multipart form or bare archive), Result JSON out, or with
+  ``?format=bag|ply|rrd`` the same result as a zipped ROS 2 bag, zipped PLY files or a Rerun
+  recording (``shadowcorr.export``).
 * ``GET /health``      -- liveness + readiness (503 until the model and workers are warm).
 * ``GET /info``        -- model card, limits, version, public settings.
 * ``GET /metrics``     -- Prometheus text.
@@ -24,9 +26,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
 
 from shadowcorr import __version__
 from shadowcorr.config import METHODS, REQUEST_OPTIONS, ShadowCorrConfig
+from shadowcorr.export import FORMATS, STORAGES, rerun_available
 from shadowcorr.result import Result
 
 from .errors import ApiError, ErrorBody, install_error_handlers, problems_from_pydantic
+from .jobs import Artefact
 from .metrics import CONTENT_TYPE_LATEST, ServiceMetrics
 from .middleware import AccessMiddleware
 from .multipart import BodyError, content_kind
@@ -52,6 +56,12 @@ def _query_model() -> type[BaseModel]:
                   description=ShadowCorrConfig.model_fields["method"].description),
         ),
         "metrics": (bool, Field(False, description="add ground-truth metrics to the result when the bundle has ground truth")),
+        "format": (Literal["json", *FORMATS], Field(
+            "json", description="json: the result; bag: a zip of a ROS 2 bag directory and result.json; ply: a zip of "
+            "the PLY files and result.json; rrd: a Rerun recording (501 where the Rerun SDK is not installed)")),
+        "frame_id": (str, Field("map", min_length=1, max_length=256, pattern=r"^[A-Za-z0-9_/]+$",
+                                description="world frame of the bag's messages (format=bag)")),
+        "storage": (Literal[STORAGES], Field("mcap", description="the bag's storage plugin (format=bag)")),
     }
     for name in REQUEST_OPTIONS:
         f = ShadowCorrConfig.model_fields[name]
@@ -64,6 +74,10 @@ def _query_model() -> type[BaseModel]:
 CorrespondQuery = _query_model()
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
+    200: {"description": "the result JSON; with format=bag or ply a zip archive (the bag directory or the PLY files, "
+          "and result.json), with format=rrd a Rerun recording",
+          "content": {"application/zip": {"schema": {"type": "string", "format": "binary"}},
+                      "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
     400: {"model": ErrorBody, "description": "malformed body: bad multipart form, empty body, client gone mid-upload "
           "(bad_multipart, empty_body, client_disconnected, bad_request)"},
     401: {"model": ErrorBody, "description": "bearer token missing or wrong, when the service has one (unauthorized)"},
@@ -81,6 +95,7 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
           "invalid_options, invalid_request, no_segments, no_valid_depth, unprocessable_scene)"},
     431: {"model": ErrorBody, "description": "request line and headers over max_header_bytes (headers_too_large)"},
     500: {"model": ErrorBody, "description": "internal error, or the worker process died (worker_crashed: retry is safe)"},
+    501: {"model": ErrorBody, "description": "format=rrd on a server without the Rerun SDK (format_unavailable)"},
     503: {"model": ErrorBody, "description": "not ready, shutting down, too many requests / upload bytes / connections "
           "in flight (not_ready, shutting_down, overloaded, too_many_connections); see Retry-After",
           "headers": {"Retry-After": {"description": "seconds to wait before retrying", "schema": {"type": "integer"}}}},
@@ -167,6 +182,14 @@ async def _shutdown_deadline(runtime: Runtime) -> None:
     )
 
 
+#: Media type of each artefact (``?format=``): bags and PLY files are directories, sent as zip archives.
+_ARTEFACT_TYPES = {"bag": "application/zip", "ply": "application/zip", "rrd": "application/octet-stream"}
+
+
+#: The file name each artefact is offered under (Content-Disposition).
+_ARTEFACT_FILES = {"bag": "shadowcorr_bag.zip", "ply": "shadowcorr_ply.zip", "rrd": "shadowcorr.rrd"}
+
+
 def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     """A new service app (its runtime starts with the ASGI lifespan)."""
     settings = settings or ServiceSettings()
@@ -219,6 +242,12 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         except BodyError as e:
             code = "unsupported_media_type" if e.status == 415 else "bad_multipart"
             raise ApiError(e.status, code, str(e), [{"loc": e.loc, "msg": str(e)}]) from None
+        artefact = None
+        if params["format"] != "json":
+            if params["format"] == "rrd" and not rerun_available():
+                raise ApiError(501, "format_unavailable", "format=rrd needs the Rerun SDK on the server "
+                               "(pip install 'shadowcorr[viz]'); format=bag and format=ply work without it")
+            artefact = Artefact(params["format"], params["frame_id"], params["storage"])
         runtime.check_accepting()
 
         async def run() -> bytes:
@@ -228,7 +257,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             client = request.client.host if request.client else "unknown"
             ticket = runtime.admit(upload, reserved, started, client)
             try:
-                work = _unless(runtime.correspond(ticket, content_type, config, bool(params["metrics"])),
+                work = _unless(runtime.correspond(ticket, content_type, config, bool(params["metrics"]), artefact),
                                _disconnected(request))
                 # wait_for, not asyncio.timeout: the project supports Python 3.10.
                 return await asyncio.wait_for(work, settings.request_timeout_s)
@@ -240,7 +269,10 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
                 runtime.release(ticket)  # the slot stays taken until its worker job has really stopped
 
         out = await _unless(run(), _shutdown_deadline(runtime))
-        return Response(out, media_type="application/json")
+        if artefact is None:
+            return Response(out, media_type="application/json")
+        return Response(out, media_type=_ARTEFACT_TYPES[artefact.format],
+                        headers={"Content-Disposition": f'attachment; filename="{_ARTEFACT_FILES[artefact.format]}"'})
 
     @app.get("/health", summary="Liveness and readiness (no auth)")
     async def health() -> JSONResponse:

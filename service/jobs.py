@@ -13,12 +13,15 @@ process boundary are the service's own objects (``VoxelScene``, arrays, results)
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import signal
 import sys
 import threading
+import tempfile
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +41,8 @@ from .multipart import BodyError, content_kind, parse_body
 from .synthetic import synthetic_bundle
 
 __all__ = [
+    "Artefact",
+    "ExportJob",
     "Prepared",
     "init_worker",
     "hello",
@@ -166,15 +171,60 @@ def _guarded(what: str, fn, *args):
         raise JobError(500, "internal_error", f"{what} failed ({type(e).__name__}); see the server log") from None
 
 
-def _decode_and_prepare(upload: Upload, content_type: str, config: ShadowCorrConfig, limits: RequestLimits) -> Prepared:
-    t0 = time.perf_counter()
+@dataclass(frozen=True)
+class Artefact:
+    """What a request asked for instead of the result JSON (``?format=``), see ``shadowcorr.export``."""
+
+    format: str  # bag | ply | rrd
+    frame_id: str = "map"
+    storage: str = "mcap"
+
+
+@dataclass
+class ExportJob:
+    """An artefact and the upload its bundle is read from again (the worker that assigns has no bundle)."""
+
+    artefact: Artefact
+    upload: Upload
+    content_type: str
+    limits: RequestLimits
+
+
+def _load_checked(upload: Upload, content_type: str, config: ShadowCorrConfig, limits: RequestLimits):
     bundle = _load(upload, content_type, limits)
     check_instances(bundle, limits, config.min_blob_pixels)
-    t1 = time.perf_counter()
+    return bundle
+
+
+def _prepare_checked(bundle, config: ShadowCorrConfig, limits: RequestLimits) -> VoxelScene:
     # The library checks the segment count right after cutting, before any heavy stage.
-    scene = prepare(bundle, config.with_options(max_segments=min(config.max_segments, limits.max_segments)))
+    return prepare(bundle, config.with_options(max_segments=min(config.max_segments, limits.max_segments)))
+
+
+def _decode_and_prepare(upload: Upload, content_type: str, config: ShadowCorrConfig, limits: RequestLimits) -> Prepared:
+    t0 = time.perf_counter()
+    bundle = _load_checked(upload, content_type, config, limits)
+    t1 = time.perf_counter()
+    scene = _prepare_checked(bundle, config, limits)
     t2 = time.perf_counter()
     return Prepared(scene=scene, decode_ms=(t1 - t0) * 1e3, prepare_ms=(t2 - t1) * 1e3)
+
+
+def _artefact_bytes(result, bundle, artefact: Artefact) -> bytes:
+    """The export as one body: a ``.rrd`` file as it is; a bag or PLY directory as a zip, with the result JSON."""
+    from shadowcorr.export import export
+
+    with tempfile.TemporaryDirectory(prefix="shadowcorr-export-") as tmp:
+        out = Path(tmp) / (f"{result.scene}.rrd" if artefact.format == "rrd" else f"{result.scene}_{artefact.format}")
+        export(result, bundle, artefact.format, out, frame_id=artefact.frame_id, storage=artefact.storage)
+        if out.is_file():
+            return out.read_bytes()
+        body = io.BytesIO()
+        with zipfile.ZipFile(body, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+            for path in sorted(out.iterdir()):
+                archive.write(path, f"{out.name}/{path.name}")
+            archive.writestr("result.json", result.model_dump_json(indent=1))
+        return body.getvalue()
 
 
 def _assign_scene(
@@ -185,21 +235,31 @@ def _assign_scene(
     metrics: bool,
     extra_timings: dict[str, float],
     started: float | None,
+    export: ExportJob | None = None,
+    bundle=None,
 ) -> bytes:
     result = assign(scene, embeddings, config, model=model, metrics=metrics)
     result.timings_ms.update({k: round(v, 3) for k, v in extra_timings.items()})
     if started is not None:  # the whole request as the service saw it: body, queues, decode, batch, network
         # time.monotonic is CLOCK_MONOTONIC, one clock for every process on the machine.
         result.timings_ms["total"] = round((time.monotonic() - started) * 1e3, 3)
-    return result.model_dump_json().encode()
+    if export is None:
+        return result.model_dump_json().encode()
+    if bundle is None:  # the bundle, read again under the same limits, supplies the cameras and images
+        bundle = _load(export.upload, export.content_type, export.limits)
+    return _artefact_bytes(result, bundle, export.artefact)
 
 
 def _baseline(upload: Upload, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool,
-              extra_timings: dict[str, float], started: float | None) -> bytes:
+              extra_timings: dict[str, float], started: float | None, artefact: Artefact | None = None) -> bytes:
     """A method without a network ('projection', 'meanshift'): no batcher; one job does it all."""
-    prepared = _decode_and_prepare(upload, content_type, config, limits)
-    return _assign_scene(prepared.scene, baseline_embeddings(prepared.scene), config, None, metrics,
-                         {**extra_timings, "decode": prepared.decode_ms}, started)
+    t0 = time.perf_counter()
+    bundle = _load_checked(upload, content_type, config, limits)
+    decode_ms = (time.perf_counter() - t0) * 1e3
+    scene = _prepare_checked(bundle, config, limits)
+    export = ExportJob(artefact, upload, content_type, limits) if artefact is not None else None
+    return _assign_scene(scene, baseline_embeddings(scene), config, None, metrics,
+                         {**extra_timings, "decode": decode_ms}, started, export, bundle)
 
 
 def _warmup_scene() -> VoxelScene:
@@ -220,21 +280,22 @@ def assign_scene(
     metrics: bool,
     extra_timings: dict[str, float],
     started: float | None = None,
+    export: ExportJob | None = None,
 ) -> bytes:
-    """Cluster the embeddings and label the segments; returns the Result JSON bytes.
+    """Cluster the embeddings and label the segments; returns the Result JSON bytes (or ``export``'s artefact).
 
     ``started`` (``time.monotonic()`` when the request began) makes ``timings_ms.total``
     the request's wall time in the service.
     """
     return _guarded("assigning objects", _assign_scene, scene, embeddings, config, model, metrics, extra_timings,
-                    started)
+                    started, export)
 
 
 def baseline(upload: Upload, content_type: str, config: ShadowCorrConfig, limits: RequestLimits, metrics: bool,
-             extra_timings: dict[str, float], started: float | None = None) -> bytes:
-    """Decode, prepare and assign with a method without a network; returns the Result JSON bytes."""
+             extra_timings: dict[str, float], started: float | None = None, artefact: Artefact | None = None) -> bytes:
+    """Decode, prepare and assign with a method without a network; returns the Result JSON bytes (or the artefact)."""
     return _guarded(f"method {config.method!r}", _baseline, upload, content_type, config, limits, metrics,
-                    extra_timings, started)
+                    extra_timings, started, artefact)
 
 
 def warmup_scene() -> VoxelScene:

@@ -355,8 +355,9 @@ class Runtime:
         ticket.jobs += 1
         return await self.pool.run(fn, *args, priority=priority, on_stopped=lambda: self._job_stopped(ticket))
 
-    async def correspond(self, ticket: "Ticket", content_type: str, config: ShadowCorrConfig, metrics: bool) -> bytes:
-        """Run one scene through the pipeline; returns the Result JSON bytes."""
+    async def correspond(self, ticket: "Ticket", content_type: str, config: ShadowCorrConfig, metrics: bool,
+                         artefact: "jobs.Artefact | None" = None) -> bytes:
+        """Run one scene through the pipeline; returns the Result JSON bytes, or the ``artefact``'s bytes."""
         stage = self.metrics.stage_latency
         t_start = time.perf_counter()
         read_ms = {"read_body": ticket.read_ms}
@@ -364,7 +365,7 @@ class Runtime:
             if config.method not in NETWORK_METHODS:
                 self.left_upstream(ticket)  # no network: never in the batcher
                 out = await self._run_job(ticket, jobs.baseline, ticket.upload, content_type, config, self.limits,
-                                          metrics, read_ms, ticket.started, priority=PRIORITY_START)
+                                          metrics, read_ms, ticket.started, artefact, priority=PRIORITY_START)
                 stage.labels("baseline").observe(time.perf_counter() - t_start)
                 return out
             try:
@@ -385,7 +386,9 @@ class Runtime:
             t_assign = time.perf_counter()
             out = await self._run_job(
                 ticket, jobs.assign_scene, prepared.scene, embeddings, config, self.model_info, metrics, extra,
-                ticket.started, priority=PRIORITY_FINISH,
+                ticket.started,
+                jobs.ExportJob(artefact, ticket.upload, content_type, self.limits) if artefact else None,
+                priority=PRIORITY_FINISH,
             )
             stage.labels("assign").observe(time.perf_counter() - t_assign)
             return out
