@@ -115,7 +115,9 @@ def test_settings_from_env_and_flags(monkeypatch):
     s = settings_from_args(build_parser().parse_args(["--max-wait-ms", "7", "--port", "9000"]))
     assert (s.workers, s.max_wait_ms, s.port, s.auth_token) == (5, 7.0, 9000, None)
     assert ServiceSettings().public_dict()["auth"] == "none"
-    with pytest.raises(Exception):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=r"workers\n.*greater than or equal to 1"):
         settings_from_args(build_parser().parse_args(["--workers", "0"]))
 
 
