@@ -2,8 +2,8 @@
 # One command sets ShadowCorr up and runs the main job on the embedded sample scene:
 #   1. system packages for the optional synthetic-data renderer (only as root with apt;
 #      the library, CLI and service need none),
-#   2. a virtual environment .venv with the project, its tests', the generator's, Ray's and the
-#      documentation's packages,
+#   2. a virtual environment .venv with the project, its tests', the generator's, Ray's, the
+#      documentation's and Rerun's (exports) packages,
 #   3. convert the sample (examples/ue_sample, Unreal layout) and label its segments.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -20,7 +20,7 @@ fi
 
 "$PYTHON" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[dev,synth,ray,docs]"
+.venv/bin/python -m pip install -q -e ".[dev,synth,ray,docs,viz]"
 
 mkdir -p out
 .venv/bin/shadowcorr convert ue examples/ue_sample --set 2001 --cameras 0,2,4,6 --out out/sample_bundle
