@@ -22,7 +22,8 @@ from .bulk_upload import upload_scenes
 __all__ = ["main", "build_parser"]
 
 DESCRIPTION = """\
-Talk to a ShadowCorr server: health, info, correspond (one scene), upload-dataset (many, resumable).
+Talk to a ShadowCorr server: health, info, correspond (one scene), upload-dataset (many, resumable),
+map (site maps that keep object ids across scans).
 
 Connection options (--server, default $SHADOWCORR_SERVER or http://127.0.0.1:8000; --token,
 default $SHADOWCORR_TOKEN; --timeout, --retries, ...) and -v / --log-level may come before or
@@ -108,6 +109,12 @@ def _options_parent() -> argparse.ArgumentParser:
     g.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
                    help="correct the views' poses from their depth first (the server's default: on)")
     g.add_argument("--metrics", action="store_true", help="ask for quality metrics (bundles with ground truth)")
+    _add_scene_options(p, g)
+    return p
+
+
+def _add_scene_options(p: argparse.ArgumentParser, g: Any) -> None:
+    """Which scenes of a folder are sent: Unreal cameras (in group ``g``) and ROS bag conversion."""
     g.add_argument("--cameras", type=_cameras,
                    help="cameras of Unreal-layout sets, e.g. 0,2,4,6 (default: every camera present)")
     b = p.add_argument_group("ROS bags (converted locally; the options of `shadowcorr convert rosbag`)")
@@ -118,7 +125,6 @@ def _options_parent() -> argparse.ArgumentParser:
                    help="largest depth/mask stamp difference (default 0: exact)")
     b.add_argument("--every", type=_positive_int, default=1, metavar="K", help="keep every K-th view of a camera")
     b.add_argument("--max-views", type=_positive_int, metavar="N", help="at most N views per camera")
-    return p
 
 
 def _bag_camera(text: str) -> str:
@@ -329,6 +335,95 @@ def cmd_upload_dataset(args: argparse.Namespace) -> int:
     return 1 if summary.failed else 0
 
 
+def cmd_map_create(args: argparse.Namespace) -> int:
+    with ShadowCorrClient(args.server, **_client_kwargs(args)) as client:
+        _print_json({"map": client.create_map()})
+    return 0
+
+
+def cmd_map_add(args: argparse.Namespace) -> int:
+    scenes = [scene for path in args.bundles for scene in _discover(path, args)]
+    out = open(args.out, "w") if args.out else None  # noqa: SIM115 - written scan by scan, closed below
+    try:
+        with ShadowCorrClient(args.server, **_client_kwargs(args)) as client:
+            for scene in scenes:
+                update = client.add_scan(args.map, scene.load(), name=scene.name)
+                kinds = [e["kind"] for e in update["events"]]
+                summary = (f"scan {update['scan']} ({scene.name}): {len(update['segments'])} segments; " + ", ".join(
+                    f"{kinds.count(k)} {k}" for k in ("created", "observed", "merged", "split", "retired")
+                    if kinds.count(k)))
+                if out:
+                    out.write(json.dumps(update) + "\n")
+                    out.flush()  # a later scan's failure leaves the earlier updates written
+                    print(summary)
+                else:
+                    print(json.dumps(update, indent=None if len(scenes) > 1 else 1))
+                    print(summary, file=sys.stderr)
+    finally:
+        if out:
+            out.close()
+    return 0
+
+
+def cmd_map_show(args: argparse.Namespace) -> int:
+    with ShadowCorrClient(args.server, **_client_kwargs(args)) as client:
+        state = client.get_map(args.map)
+    if args.out:
+        Path(args.out).write_text(json.dumps(state, indent=1) + "\n")
+        print(f"{len(state['scans'])} scans, {len(state['objects'])} objects, {len(state['segments'])} segments, "
+              f"{len(state['events'])} events; wrote {args.out}")
+    else:
+        _print_json(state)
+    return 0
+
+
+def cmd_map_events(args: argparse.Namespace) -> int:
+    with ShadowCorrClient(args.server, **_client_kwargs(args)) as client:
+        _print_json(client.map_events(args.map, since=args.since))
+    return 0
+
+
+def cmd_map_delete(args: argparse.Namespace) -> int:
+    with ShadowCorrClient(args.server, **_client_kwargs(args)) as client:
+        client.delete_map(args.map)
+    print(f"deleted map {args.map}", file=sys.stderr)
+    return 0
+
+
+def _add_map_commands(sub: Any) -> None:
+    """``map create|add|show|events|delete``: site maps kept by the server."""
+    p = sub.add_parser("map", help="site maps kept by the server: stable object ids across scans",
+                       description="Site maps kept by the server: each scan added gets the ids of the objects it "
+                                   "sees again; every revision of an object is an event.")
+    _add_global_options(p, on_subcommand=True)
+    maps = p.add_subparsers(dest="map_command", required=True, metavar="{create,add,show,events,delete}")
+
+    def command(name: str, help_text: str) -> argparse.ArgumentParser:
+        c = maps.add_parser(name, help=help_text, description=help_text[0].upper() + help_text[1:])
+        _add_global_options(c, on_subcommand=True)
+        return c
+
+    command("create", "create an empty map; prints its id").set_defaults(func=cmd_map_create)
+    c = command("add", "add scans to a map, one per scene, in order (the update JSON of each)")
+    c.add_argument("map", help="the map's id")
+    c.add_argument("bundles", nargs="+", metavar="BUNDLE",
+                   help="bundle directory or archive, a ROS bag, or an Unreal-layout folder (each scene is a scan)")
+    c.add_argument("--out", help="write the updates here as JSON lines (default: print them)")
+    _add_scene_options(c, c.add_argument_group("scenes"))
+    c.set_defaults(func=cmd_map_add)
+    c = command("show", "the whole map: scans, objects, every segment with its object, the events")
+    c.add_argument("map", help="the map's id")
+    c.add_argument("--out", help="write the map JSON here (default: print it)")
+    c.set_defaults(func=cmd_map_show)
+    c = command("events", "the map's history")
+    c.add_argument("map", help="the map's id")
+    c.add_argument("--since", type=int, default=0, metavar="N", help="only events after event N (default 0: all)")
+    c.set_defaults(func=cmd_map_events)
+    c = command("delete", "delete a map")
+    c.add_argument("map", help="the map's id")
+    c.set_defaults(func=cmd_map_delete)
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="shadowcorr-client", description=DESCRIPTION,
@@ -366,6 +461,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop starting scenes after N in a row failed to reach the server (default %(default)s; 0 = never)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_upload_dataset)
+
+    _add_map_commands(sub)
     return parser
 
 

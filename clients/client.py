@@ -19,6 +19,7 @@ import logging
 import random
 import time
 from dataclasses import dataclass
+from urllib.parse import quote
 from typing import TYPE_CHECKING, Any, Callable, Literal, Mapping
 
 import httpx
@@ -136,6 +137,11 @@ def _parse_result(response: httpx.Response) -> "Result | ResultView":
         return Result.model_validate_json(response.content)
     except ValidationError as exc:
         raise InvalidResponse(f"the server's answer is not a ShadowCorr result: {exc}", status=response.status_code) from None
+
+
+def _map_path(map_id: str) -> str:
+    """The URL path of a map, its id quoted (an id is never a path of its own)."""
+    return f"/maps/{quote(str(map_id), safe='')}"
 
 
 def _json(response: httpx.Response) -> Any:
@@ -344,6 +350,38 @@ class ShadowCorrClient:
         response = self._request("POST", "/correspond", params=params, files=list(upload.parts), timeout=timeout)
         return _parse_result(response)
 
+    # ------------------------------------------------------------------ site maps
+    def create_map(self) -> str:
+        """``POST /maps``: a new, empty site map on the server; returns its id."""
+        return str(_json(self._request("POST", "/maps", retry=NO_RETRY))["map"])
+
+    def add_scan(self, map_id: str, bundle: BundleSource, *, name: str | None = None,
+                 timeout: float | httpx.Timeout | None = None) -> dict[str, Any]:
+        """``POST /maps/{id}/scans``: add one scan (a bundle, as for :meth:`correspond`) to a map.
+
+        Returns the update JSON: the scan's segments with their object ids and the events it
+        caused.  Not retried: a scan whose answer was lost may have been added, so read the map's
+        events before sending it again.  A 409 (``map_busy``) means another scan of the map is
+        being added: send it again after the Retry-After.
+        """
+        upload = as_upload(bundle)
+        params = {"name": name} if name is not None else {}
+        response = self._request("POST", f"{_map_path(map_id)}/scans", params=params, files=list(upload.parts),
+                                 timeout=timeout, retry=NO_RETRY)
+        return _json(response)
+
+    def get_map(self, map_id: str) -> dict[str, Any]:
+        """``GET /maps/{id}``: scans, objects, every segment with its object, and the events."""
+        return _json(self._request("GET", _map_path(map_id)))
+
+    def map_events(self, map_id: str, since: int = 0) -> list[dict[str, Any]]:
+        """``GET /maps/{id}/events``: the map's history after event ``since`` (0: all of it)."""
+        return list(_json(self._request("GET", f"{_map_path(map_id)}/events", params={"since": str(since)}))["events"])
+
+    def delete_map(self, map_id: str) -> None:
+        """``DELETE /maps/{id}``."""
+        self._request("DELETE", _map_path(map_id))
+
 
 class AsyncShadowCorrClient:
     """``asyncio`` twin of :class:`ShadowCorrClient` (same arguments, awaitable methods).
@@ -454,3 +492,30 @@ class AsyncShadowCorrClient:
         response = await self._request("POST", "/correspond", params=params, files=list(upload.parts),
                                        timeout=timeout)
         return await asyncio.to_thread(_parse_result, response)  # a large result takes a while to validate
+
+    # ------------------------------------------------------------------ site maps
+    async def create_map(self) -> str:
+        """``POST /maps``; see :meth:`ShadowCorrClient.create_map`."""
+        return str(_json(await self._request("POST", "/maps", retry=NO_RETRY))["map"])
+
+    async def add_scan(self, map_id: str, bundle: BundleSource, *, name: str | None = None,
+                       timeout: float | httpx.Timeout | None = None) -> dict[str, Any]:
+        """``POST /maps/{id}/scans``; see :meth:`ShadowCorrClient.add_scan`."""
+        upload = bundle if isinstance(bundle, BundleUpload) else await asyncio.to_thread(as_upload, bundle)
+        params = {"name": name} if name is not None else {}
+        response = await self._request("POST", f"{_map_path(map_id)}/scans", params=params, files=list(upload.parts),
+                                       timeout=timeout, retry=NO_RETRY)
+        return _json(response)
+
+    async def get_map(self, map_id: str) -> dict[str, Any]:
+        """``GET /maps/{id}``; see :meth:`ShadowCorrClient.get_map`."""
+        return _json(await self._request("GET", _map_path(map_id)))
+
+    async def map_events(self, map_id: str, since: int = 0) -> list[dict[str, Any]]:
+        """``GET /maps/{id}/events``; see :meth:`ShadowCorrClient.map_events`."""
+        response = await self._request("GET", f"{_map_path(map_id)}/events", params={"since": str(since)})
+        return list(_json(response)["events"])
+
+    async def delete_map(self, map_id: str) -> None:
+        """``DELETE /maps/{id}``."""
+        await self._request("DELETE", _map_path(map_id))

@@ -8,6 +8,7 @@ Routes:
 * ``GET /health``      -- liveness + readiness (503 until the model and workers are warm).
 * ``GET /info``        -- model card, limits, version, public settings.
 * ``GET /metrics``     -- Prometheus text.
+* ``/maps``            -- site maps that grow scan by scan (see :mod:`.maps`).
 
 ``create_app(settings)`` builds an app with its own runtime, so tests and embedders
 can run several side by side.
@@ -30,6 +31,7 @@ from shadowcorr.export import FORMATS, STORAGES, rerun_available
 from shadowcorr.result import Result
 
 from .errors import ApiError, ErrorBody, install_error_handlers, problems_from_pydantic
+from .maps import add_map_routes
 from .jobs import Artefact
 from .metrics import CONTENT_TYPE_LATEST, ServiceMetrics
 from .middleware import AccessMiddleware
@@ -273,6 +275,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             return Response(out, media_type="application/json")
         return Response(out, media_type=_ARTEFACT_TYPES[artefact.format],
                         headers={"Content-Disposition": f'attachment; filename="{_ARTEFACT_FILES[artefact.format]}"'})
+
+    add_map_routes(app, runtime, _ERRORS, _BODY_SCHEMA)
 
     @app.get("/health", summary="Liveness and readiness (no auth)")
     async def health() -> JSONResponse:

@@ -56,7 +56,8 @@ def _metavar(name: str) -> str:
         return "MS"
     if name.endswith("_bytes"):
         return "BYTES"
-    return {"host": "HOST", "device": "DEVICE", "log_level": "LEVEL", "allow_no_auth": "BOOL"}.get(name, "N")
+    return {"host": "HOST", "device": "DEVICE", "log_level": "LEVEL", "allow_no_auth": "BOOL",
+            "maps_dir": "DIR"}.get(name, "N")
 
 
 def add_serve_parser(subparsers: Any) -> argparse.ArgumentParser:

@@ -99,6 +99,10 @@ class ServiceSettings(BaseSettings):
         "defence under the input limits; 0 = none"
     )
 
+    # --- site maps
+    maps_dir: Path | None = Field(None, description="directory of the site maps (/maps routes), one file per map; "
+                                  "unset: the server keeps no maps")
+
     # --- security and logging
     auth_token: SecretStr | None = Field(None, description="when set, every route but /health needs 'Authorization: Bearer <token>'")
     allow_no_auth: bool = Field(
@@ -131,7 +135,8 @@ class ServiceSettings(BaseSettings):
     def public_dict(self) -> dict[str, Any]:
         """Settings that are safe to show to any authenticated client (no secrets, no file-system paths)."""
         # /info names the model by name, version and checksum instead of model_path.
-        data = self.model_dump(mode="json", exclude={"auth_token", "model_path"})
+        data = self.model_dump(mode="json", exclude={"auth_token", "model_path", "maps_dir"})
+        data["maps"] = self.maps_dir is not None
         data["auth"] = "bearer" if self.auth_token is not None else "none"
         return data
 

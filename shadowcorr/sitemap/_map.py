@@ -168,7 +168,7 @@ class SiteMap:
             t1 = time.perf_counter()
             (embeddings,) = embed(self.model, [plan.scene])
             plan.timings_ms["network"] = (time.perf_counter() - t1) * 1e3
-            update = self.commit_scan(plan, embeddings)
+            update = self.commit_scan(plan, embeddings, model_sha256=self.model.sha256)
         update.timings_ms["total"] = round((time.perf_counter() - t0) * 1e3, 3)
         return update
 
@@ -240,8 +240,11 @@ class SiteMap:
         return sorted(rank_views(new_cams, new_centroids, cams, {k: np.asarray(v) for k, v in centroids.items()},
                                  config.max_depth, self.max_linked_views))
 
-    def commit_scan(self, plan: ScanPlan, embeddings: np.ndarray) -> MapUpdate:
-        """Group the run's segments, revise the map's objects and store the scan (one transaction)."""
+    def commit_scan(self, plan: ScanPlan, embeddings: np.ndarray, *, model_sha256: str | None = None) -> MapUpdate:
+        """Group the run's segments, revise the map's objects and store the scan (one transaction).
+
+        ``embeddings``: the network's output for ``plan.scene``; ``model_sha256`` names the model
+        that gave them (recorded with the scan)."""
         config = self.config
         timings = dict(plan.timings_ms)
         t0 = time.perf_counter()
@@ -260,7 +263,7 @@ class SiteMap:
             stored_object = np.r_[np.full(n, -1, dtype=np.int64), plan.stored_objects]
             sizes = store.object_sizes(np.unique(plan.stored_objects).tolist())
             revision = revise(groups.labels, is_new, stored_object, margin, sizes, store.next_object(), self.min_margin)
-            scan = store.add_scan(plan.name, len(plan.summaries), n, getattr(self._model, "sha256", None))
+            scan = store.add_scan(plan.name, len(plan.summaries), n, model_sha256)
             store.add_objects(revision.created, scan)
             view_ids = [store.add_view(scan, s.name, s.pose, s.intrinsics, s.stride, s.depth, s.labels, s.labels_top,
                                        s.labels_left, s.lo, s.hi, CELL_VOXELS * config.voxel_size)
