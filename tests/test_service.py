@@ -259,13 +259,20 @@ def test_meanshift_and_options(client, synthetic):
     assert r.status_code == 200, r.text
     body = r.json()
     assert body["method"] == "meanshift" and body["model"] is None and len(body["segments"]) == len(labels)
-    r = client.post(
-        "/correspond",
-        params={"bandwidth": "0.7", "split_components": "false", "min_blob_pixels": "10", "min_cluster_size": "3"},
-        files={"bundle": ("s.zip", zipped)},
-    )
+    # Every per-request option, each away from its default, reaches the computation: the
+    # result's configuration says so and the labels are the library's under those options.
+    from shadowcorr import ShadowCorrConfig, correspond, load_bundle
+
+    options = {"method": "shadowcorr", "bandwidth": 0.5, "split_components": False, "min_blob_pixels": 120,
+               "min_cluster_size": 3, "refine_poses": False}
+    defaults = ShadowCorrConfig()
+    assert all(getattr(defaults, k) != v for k, v in options.items())
+    r = client.post("/correspond", params={k: str(v).lower() for k, v in options.items()},
+                    files={"bundle": ("s.zip", zipped)})
     assert r.status_code == 200, r.text
-    assert _labels(r.json()) == labels
+    assert {k: r.json()["config"][k] for k in options} == options
+    local = correspond(load_bundle(zipped), config=ShadowCorrConfig(**options), metrics=False)
+    assert _labels(r.json()) == local.labels
     # a bare archive body works too
     r = client.post("/correspond", content=zipped, headers={"Content-Type": "application/zip"})
     assert r.status_code == 200 and _labels(r.json()) == labels
