@@ -8,6 +8,7 @@ import json
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -48,24 +49,22 @@ def _cameras(text: str) -> list[int]:
     return cameras
 
 
-def _positive_int(text: str) -> int:
+def _number(text: str, kind: type, accept: Callable[[Any], bool], expected: str) -> Any:
     try:
-        value = int(text)
+        value = kind(text)
     except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+        value = None
+    if value is None or not accept(value):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return value
+
+
+def _positive_int(text: str) -> int:
+    return _number(text, int, lambda n: n >= 1, "a whole number >= 1")
 
 
 def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not 0.0 <= value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
-    return value
+    return _number(text, float, lambda s: 0.0 <= s < float("inf"), "a number of seconds >= 0")
 
 
 def _add_global_options(p: argparse.ArgumentParser, *, on_subcommand: bool) -> None:

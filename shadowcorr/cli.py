@@ -126,14 +126,19 @@ def _device(text: str) -> str:
     return text
 
 
-def _threads(text: str) -> int:
+def _number(text: str, kind: type, accept: Callable[[Any], bool], expected: str) -> Any:
+    """``kind(text)`` when it parses and ``accept`` takes it; otherwise argparse's error, ``expected ..., got ...``."""
     try:
-        value = int(text)
+        value = kind(text)
     except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a thread count (0: every core), got {text!r}")
+        value = None
+    if value is None or not accept(value):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return value
+
+
+def _threads(text: str) -> int:
+    return _number(text, int, lambda n: n >= 0, "a thread count (0: every core)")
 
 
 def config_from_args(args: argparse.Namespace) -> "ShadowCorrConfig":
@@ -420,24 +425,12 @@ def _add_map_parser(sub: argparse._SubParsersAction) -> None:
 
 def positive_int(text: str) -> int:
     """An argparse type: a whole number >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
-    return value
+    return _number(text, int, lambda n: n >= 1, "a whole number >= 1")
 
 
 def seconds(text: str) -> float:
     """An argparse type: a finite number of seconds >= 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not 0.0 <= value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
-    return value
+    return _number(text, float, lambda s: 0.0 <= s < float("inf"), "a number of seconds >= 0")
 
 
 def _bag_camera(text: str):

@@ -22,6 +22,7 @@ import tarfile
 import zipfile
 import zlib
 from collections import Counter
+from collections.abc import Callable
 from typing import IO, Any
 
 from ..errors import BundleError, Problem
@@ -150,17 +151,16 @@ def _read_zip(
         problems += _listing_problems([n for n, _ in wanted], limits)
         if problems:
             return {}, problems, []
-        named = _Named(limits)
-        manifests = [(n, i) for n, i in wanted if _is_manifest(n)]
-        if len(manifests) == 1:  # several (or none): the loader says so, from the candidates alone
-            data, problem = _zip_member(zf, manifests[0][1], limits.max_manifest_bytes + 1)
-            if problem is not None:
-                return {}, [problem], []
-            named.learn(manifests[0][0], data)
-        else:
-            named.names = set()
-        skipped = [n for n, _ in wanted if not named.wants(n)]
-        wanted = [(n, i) for n, i in wanted if named.wants(n)]
+        manifest_problems: list[Problem] = []
+
+        def read_manifest(info: zipfile.ZipInfo) -> bytes:
+            data, problem = _zip_member(zf, info, limits.max_manifest_bytes + 1)
+            manifest_problems.extend([problem] if problem is not None else [])
+            return data
+
+        wanted, skipped = _split_by_manifest(wanted, read_manifest, limits)
+        if manifest_problems:
+            return {}, manifest_problems, []
         declared = sum(i.file_size for _, i in wanted)
         problems += _size_problems(0, declared, sum(i.compress_size for _, i in wanted) or archive_size, limits)
         for _, info in wanted:
@@ -184,6 +184,20 @@ def _read_zip(
                 break
             files[name] = data
     return files, problems, skipped
+
+
+def _split_by_manifest(listed: list[tuple[str, Any]], read_manifest: Callable[[Any], bytes],
+                       limits: BundleLimits) -> tuple[list[tuple[str, Any]], list[str]]:
+    """Of an archive's listed ``(name, member)``, those its manifest names (the manifest included)
+    and the names of the others.  With several manifest candidates or none, only those are
+    wanted: the loader says so, from the candidates alone."""
+    named = _Named(limits)
+    manifests = [(n, m) for n, m in listed if _is_manifest(n)]
+    if len(manifests) == 1:
+        named.learn(manifests[0][0], read_manifest(manifests[0][1]))
+    else:
+        named.names = set()
+    return [(n, m) for n, m in listed if named.wants(n)], [n for n, _ in listed if not named.wants(n)]
 
 
 def _listing_problems(names: list[str], limits: BundleLimits) -> list[Problem]:
@@ -327,15 +341,8 @@ def _read_plain_tar(fh: IO[bytes], limits: BundleLimits) -> tuple[dict[str, byte
             problems += _listing_problems([n for n, _ in listed], limits)
             if problems:
                 return {}, problems, []
-            named = _Named(limits)
-            manifests = [(n, m) for n, m in listed if _is_manifest(n)]
-            if len(manifests) == 1:  # several (or none): the loader says so, from the candidates alone
-                name, m = manifests[0]
-                named.learn(name, _tar_data(tf, m, limits.max_manifest_bytes + 1))
-            else:
-                named.names = set()
-            skipped = [n for n, _ in listed if not named.wants(n)]
-            wanted = [(n, m) for n, m in listed if named.wants(n)]
+            wanted, skipped = _split_by_manifest(listed, lambda m: _tar_data(tf, m, limits.max_manifest_bytes + 1),
+                                                 limits)
             declared = sum(m.size for _, m in wanted)
             if declared > limits.max_total_bytes:
                 return {}, _size_problems(0, declared, declared, limits), []
