@@ -79,40 +79,36 @@ def huge_point_npz_bundle(points: int = 20_000_000) -> tuple[bytes, str]:
     return zip_files({"manifest.json": json.dumps(manifest).encode(), "segments.npz": npz.getvalue()}), ZIP
 
 
-def many_empty_pixels_bundle(views: int = 16, side: int = 4096) -> tuple[bytes, str]:
-    """``views`` views of ``side`` x ``side`` pixels with one tiny instance each: a few kB of PNG
-    that would decode to gigabytes."""
+def _one_image_pair_bundle(mask: np.ndarray, depth: np.ndarray, views: int) -> tuple[bytes, str]:
+    """A zipped bundle of ``views`` views at one pose that all share one mask and one depth PNG."""
     from shadowcorr.io import encode_depth_png16, encode_mask_png
 
-    mask = np.zeros((side, side), np.uint8)
-    mask[:8, :8] = 1
-    depth = np.where(mask > 0, 5.0, 0.0)
-    mask_png, depth_png = encode_mask_png(mask), encode_depth_png16(depth, 0.001)
-    files: dict[str, bytes] = {"mask.png": mask_png, "depth.png": depth_png}
-    intrinsics = {"fx": 1000.0, "fy": 1000.0, "cx": side / 2, "cy": side / 2, "width": side, "height": side}
+    height, width = mask.shape
+    files = {"mask.png": encode_mask_png(mask), "depth.png": encode_depth_png16(depth, 0.001)}
+    intrinsics = {"fx": 1000.0, "fy": 1000.0, "cx": width / 2, "cy": height / 2, "width": width, "height": height}
     manifest = {"units": "m", "views": [
         {"name": f"v{i}", "pose": {"matrix": np.eye(4).tolist()}, "intrinsics": intrinsics,
          "depth": {"file": "depth.png", "format": "png", "scale": 0.001},
          "mask": {"file": "mask.png", "format": "png"}} for i in range(views)]}
     return zip_files({"manifest.json": json.dumps(manifest).encode(), **files}), ZIP
+
+
+def many_empty_pixels_bundle(views: int = 16, side: int = 4096) -> tuple[bytes, str]:
+    """``views`` views of ``side`` x ``side`` pixels with one tiny instance each: a few kB of PNG
+    that would decode to gigabytes."""
+    mask = np.zeros((side, side), np.uint8)
+    mask[:8, :8] = 1
+    return _one_image_pair_bundle(mask, np.where(mask > 0, 5.0, 0.0), views)
 
 
 def dense_instance_bundle(views: int = 3, side: int = 1700) -> tuple[bytes, str]:
     """``views`` views of ``side`` x ``side`` pixels that are all one instance with valid depth
     (8.7 million points at the defaults, over the service's 8 million): a few kB of PNG whose
     back-projection alone would take hundreds of MB, and ``prepare`` much longer."""
-    from shadowcorr.io import encode_depth_png16, encode_mask_png
-
-    mask = np.ones((side, side), np.uint8)
-    files = {"mask.png": encode_mask_png(mask), "depth.png": encode_depth_png16(np.full((side, side), 5.0), 0.001)}
-    intrinsics = {"fx": 1000.0, "fy": 1000.0, "cx": side / 2, "cy": side / 2, "width": side, "height": side}
-    manifest = {"units": "m", "views": [
-        {"name": f"v{i}", "pose": {"matrix": np.eye(4).tolist()}, "intrinsics": intrinsics,
-         "depth": {"file": "depth.png", "format": "png", "scale": 0.001},
-         "mask": {"file": "mask.png", "format": "png"}} for i in range(views)]}
-    return zip_files({"manifest.json": json.dumps(manifest).encode(), **files}), ZIP
+    return _one_image_pair_bundle(np.ones((side, side), np.uint8), np.full((side, side), 5.0), views)
 
 
+def corrupt_deflate_bundle() -> tuple[bytes, str]:
     """A valid small bundle whose first deflated member starts with a block of the reserved type
     (BFINAL 1, BTYPE 11): the archive's directory is intact, the member fails while inflating."""
     from shadowcorr_service.synthetic import synthetic_bundle
