@@ -146,6 +146,16 @@ _STATUS_CODES = {
 }
 
 
+def _allowed_methods(request: Request) -> str:
+    """The methods of every route whose path matches the request's (one route per method and path)."""
+    methods: set[str] = set()
+    for route in request.app.routes:
+        regex = getattr(route, "path_regex", None)
+        if regex is not None and regex.match(request.url.path) and getattr(route, "methods", None):
+            methods |= set(route.methods)
+    return ", ".join(sorted(methods))
+
+
 def install_error_handlers(app: Any, on_error: Callable[[str], None] | None = None) -> None:
     """Route every exception through the one JSON error shape; ``on_error(code)`` counts them."""
 
@@ -164,10 +174,13 @@ def install_error_handlers(app: Any, on_error: Callable[[str], None] | None = No
         code, what = ("invalid_options", "invalid options") if options else ("invalid_request", "invalid request parameters")
         return respond(422, code, _summary(problems, what), problems)
 
-    async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = _STATUS_CODES.get(exc.status_code, "http_error")
         detail = exc.detail if isinstance(exc.detail, str) else HTTPStatus(exc.status_code).phrase
-        return respond(exc.status_code, code, detail, headers=getattr(exc, "headers", None))
+        headers = getattr(exc, "headers", None)
+        if exc.status_code == 405:  # every method of the path, not only those of its first route
+            headers = {**(headers or {}), "Allow": _allowed_methods(request)}
+        return respond(exc.status_code, code, detail, headers=headers)
 
     async def unexpected(_: Request, exc: Exception) -> JSONResponse:
         log.exception("unhandled error")
