@@ -44,26 +44,36 @@ SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "ue_sample"  # ships
 
 def tile_scene(bases: list, spacing: float):
     """The scenes ``bases`` on a square grid ``spacing`` (bundle units) apart, as one bundle."""
-    from shadowcorr import SceneBundle, View
+    from shadowcorr import SceneBundle
 
     side = math.ceil(math.sqrt(len(bases)))
     id_stride = 1 + max(int(v.mask.max()) for base in bases for v in base.views)
     views, seen = [], set()
     for c, base in enumerate(bases):
-        offset = np.array([(c % side) * spacing, (c // side) * spacing, 0.0])
         # A scene tiled again gets its own copy of the depth (a field holds as much as it shows);
         # distinct scenes hand theirs over (no second copy of the input at the peak).
-        repeated = id(base) in seen
+        views += place_tile(base, c, side, spacing, id_stride, copy_depth=id(base) in seen)
         seen.add(id(base))
-        for v in base.views:
-            pose = v.pose.copy()
-            pose[:3, 3] += offset
-            # Widened first: masks come as stored (uint8 / uint16), and shifted ids outgrow them.
-            mask = np.where(v.mask > 0, v.mask.astype(np.int32) + c * id_stride, 0)
-            views.append(View(name=f"tile{c}_{v.name}", pose=pose, intrinsics=v.intrinsics,
-                              depth=v.depth.copy() if repeated else v.depth, mask=mask))
     return SceneBundle(units=bases[0].units, views=views, name=f"field_x{len(bases)}",
                        ground_truth=bases[0].ground_truth)
+
+
+def place_tile(base, c: int, side: int, spacing: float, id_stride: int, copy_depth: bool = False) -> list:
+    """The views of ``base`` as tile ``c`` of a grid ``side`` tiles wide: poses shifted by the tile's
+    offset, mask ids by ``c * id_stride`` (so each tile's rocks are objects of their own), names
+    prefixed ``tile{c}_``."""
+    from shadowcorr import View
+
+    offset = np.array([(c % side) * spacing, (c // side) * spacing, 0.0])
+    views = []
+    for v in base.views:
+        pose = v.pose.copy()
+        pose[:3, 3] += offset
+        # Widened first: masks come as stored (uint8 / uint16), and shifted ids outgrow them.
+        mask = np.where(v.mask > 0, v.mask.astype(np.int32) + c * id_stride, 0)
+        views.append(View(name=f"tile{c}_{v.name}", pose=pose, intrinsics=v.intrinsics,
+                          depth=v.depth.copy() if copy_depth else v.depth, mask=mask))
+    return views
 
 
 #: Generator seed of the synthetic tiles (tile i: scene_seed(SYNTH_SEED, i)); training never saw it.

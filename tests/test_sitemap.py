@@ -78,18 +78,33 @@ def test_a_revisit_gives_every_segment_its_id(tmp_path, model, ring) -> None:
         again = site.add(views(ring, "cam0", "cam2", "cam5"))
         assert {key(s): s.object for s in again.segments} == before
         assert {e.kind for e in again.events} == {"observed"}
-        assert len(again.linked_views) == 3
+        # The repeated views are recognised (and left out of the evidence: seen twice, it would count twice).
+        assert sorted(r.view for r in again.revisited_views) == ["cam0", "cam2", "cam5"] and again.linked_views == []
+        # A repeated view beside a new one: the repeat keeps its ids, the new view's spheres get them too.
+        mixed = site.add(views(ring, "cam2", "cam7"))
+        assert {(r.scan, r.view) for r in mixed.revisited_views} == {(1, "cam2"), (2, "cam2")}
+        assert {r.view for r in mixed.linked_views} <= {"cam0", "cam5"}
+        sphere_id = {instance: obj for (_, instance, _), obj in before.items()}
+        assert all(s.object == sphere_id[s.instance] for s in mixed.segments)
+        assert {e.kind for e in site.events()} == {"created", "observed"}
 
 
 def test_halves_of_a_split_mask_are_merged_when_a_later_scan_sees_the_whole(tmp_path, model, ring) -> None:
-    cam0 = ring.views[0]
+    cam0 = sphere_scene(CENTRES, CENTRES[:, 2], cameras=8, width=640, height_px=360).views[0]
     mask = cam0.mask.copy()
     _, cols = np.nonzero(mask == 1)
-    mask[(mask == 1) & (np.arange(mask.shape[1])[None, :] >= int(np.median(cols)))] = 7  # one sphere, two ids
-    with SiteMap(tmp_path / "site.map", model=model) as site:
+    column = np.arange(mask.shape[1])[None, :]
+    middle = int(np.median(cols))
+    # One sphere, two ids, with a gap between them wider than a seam is looked for across.
+    mask[(mask == 1) & (column >= middle)] = 7
+    mask[((mask == 1) | (mask == 7)) & (np.abs(column - middle) < 6)] = 0
+    # A strong per-view constraint: seen by one view only, two mask ids are two objects; once other
+    # views show the two masks landing together (a split mask), the constraint no longer holds.
+    config = ShadowCorrConfig(fusion_cannot_link=3.0)
+    with SiteMap(tmp_path / "site.map", config, model=model) as site:
         first = site.add(dataclasses.replace(ring, views=[dataclasses.replace(cam0, mask=mask)]))
         halves = {s.instance: s for s in first.segments if s.instance in (1, 7)}
-        assert halves[1].object != halves[7].object  # one view: two mask ids are two objects
+        assert halves[1].object != halves[7].object
         update = site.add(views(ring, "cam2", "cam3", "cam4"))
         merged = [e for e in update.events if e.kind == "merged"]
         assert len(merged) == 1

@@ -13,7 +13,17 @@ coarse depth).  Registration corrects every view of a connected group so that th
 corrections average zero; the map's views are the reference, so every correction of a group
 that holds stored views is taken relative to the stored views' mean correction (rotations
 averaged as quaternions): stored poses stay exactly as stored, and the new views move onto them.
-A group of new views only keeps its own corrections.
+A group of new views only keeps its own corrections.  Stored views corrected relative to that
+reference move too, their segments with them: each update registers the linked neighbourhood
+anew, so a stored pair registered alone (two views, under depth noise good to about half a
+degree) is brought into line with the views added since (measured on the real scene under the
+``field`` errors: the map's average purity 93-98 with the stored poses fixed, 97-99 corrected).
+
+**Revisits.**  A new view taken from the place of a stored one (after registration: the camera
+within ``REVISIT_VOXELS`` voxels, turned by less than ``REVISIT_DEG``, the same image size and
+focal length) repeats it: its segments that cover the same pixels as a stored segment (IoU over
+``REVISIT_IOU`` on the summary grid) take that segment's id, and the stored view leaves the run -
+the same surface seen twice would count its evidence twice.
 """
 
 from __future__ import annotations
@@ -23,12 +33,22 @@ from scipy.spatial.transform import Rotation
 
 from ..bundle import SceneBundle, View
 from ..result import ViewPoseCorrection
+from ._summaries import StoredViews, ViewSummary
 
-__all__ = ["FOOTPRINT_MARGIN_VOXELS", "anchor_corrections", "corrected_report", "footprints", "in_frustum", "rank_views"]
+__all__ = ["FOOTPRINT_MARGIN_VOXELS", "REVISIT_DEG", "REVISIT_IOU", "REVISIT_VOXELS", "anchor_corrections",
+           "corrected_report", "footprints", "in_frustum", "rank_views", "revisits"]
 
 #: A footprint is widened by this many voxels: the two sides of one rock, seen from opposite
 #: views, are two boxes that may only touch.
 FOOTPRINT_MARGIN_VOXELS = 4
+
+
+#: A new view repeats a stored one from within this many voxels and degrees ...
+REVISIT_VOXELS = 1.0
+REVISIT_DEG = 1.0
+#: ... and a new segment repeats a stored segment of it when their pixels' IoU exceeds this
+#: (over a half: each is then the other's only match).
+REVISIT_IOU = 0.5
 
 
 def footprints(points: np.ndarray, view: np.ndarray, lengths: np.ndarray, num_views: int
@@ -115,3 +135,51 @@ def corrected_report(report: ViewPoseCorrection, view: View, correction: np.ndar
         "correction": correction.round(9).tolist(),
         "rotation_deg": round(float(np.degrees(Rotation.from_matrix(correction[:3, :3]).magnitude())), 4),
         "translation": round(float(np.linalg.norm(moved[:3, 3] - view.pose[:3, 3])), 4)})
+
+
+def revisits(summaries: list[ViewSummary], new_view: np.ndarray, stored: StoredViews, voxel_size: float
+             ) -> tuple[list[int], np.ndarray]:
+    """The stored views (indices) that new views repeat, and for every new segment the object of the
+    stored segment it repeats (-1: none); see the module docstring.  ``new_view``: the view of each
+    new segment."""
+    repeats = np.full(len(new_view), -1, dtype=np.int64)
+    new_first = np.searchsorted(new_view, np.arange(len(summaries)))
+    stored_first = np.searchsorted(stored.segments.view, np.arange(len(stored.views)))
+    twins: set[int] = set()
+    for j, summary in enumerate(summaries):
+        fx, fy, cx, cy, _, _ = summary.intrinsics
+        f = summary.stride
+        mine = _grid(summary.depth.shape, summary.labels, summary.labels_top, summary.labels_left, int(new_first[j]))
+        for w, view in enumerate(stored.views):
+            k = view.intrinsics
+            same_camera = view.depth.shape == summary.depth.shape and np.allclose(
+                [k.fx, k.fy, k.cx, k.cy], [fx / f, fy / f, (cx - f // 2) / f, (cy - f // 2) / f], rtol=1e-3, atol=1e-3)
+            if not same_camera or np.linalg.norm(view.pose[:3, 3] - summary.pose[:3, 3]) > REVISIT_VOXELS * voxel_size:
+                continue
+            turn = np.clip((np.trace(summary.pose[:3, :3].T @ view.pose[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+            if np.degrees(np.arccos(turn)) > REVISIT_DEG:
+                continue
+            image = stored.segments.pixel_segment[w]
+            theirs = _grid(summary.depth.shape, np.where(image.window >= 0, image.window - stored_first[w], -1),
+                           image.top, image.left, int(stored_first[w]))
+            twins.add(w)
+            both = (mine >= 0) & (theirs >= 0)
+            if not both.any():
+                continue
+            span = int(theirs.max()) + 1
+            pair, shared = np.unique(mine[both].astype(np.int64) * span + theirs[both], return_counts=True)
+            a, b = pair // span, pair % span
+            area_a = np.bincount(mine[mine >= 0], minlength=int(a.max()) + 1)
+            area_b = np.bincount(theirs[theirs >= 0], minlength=span)
+            iou = shared / (area_a[a] + area_b[b] - shared)
+            same = iou > REVISIT_IOU
+            repeats[a[same]] = stored.segment_objects[b[same]]
+    return sorted(twins), repeats
+
+
+def _grid(shape: tuple[int, int], window: np.ndarray, top: int, left: int, first: int) -> np.ndarray:
+    """The summary grid's segment indices (``first`` + local index; -1 on no segment)."""
+    out = np.full(shape, -1, dtype=np.int64)
+    h, w = window.shape
+    out[top:top + h, left:left + w] = np.where(window >= 0, window.astype(np.int64) + first, -1)
+    return out

@@ -17,7 +17,7 @@ from ..nn import Model, load_model
 from ..pipeline import cut_segments, embed, prepare_segments
 from ..result import ViewPoseCorrection
 from ..stages import Segments, VoxelScene, group_by_evidence, pose_warnings, refine_poses, segment_support, support_features
-from ._linking import FOOTPRINT_MARGIN_VOXELS, anchor_corrections, corrected_report, footprints, rank_views
+from ._linking import FOOTPRINT_MARGIN_VOXELS, anchor_corrections, corrected_report, footprints, rank_views, revisits
 from ._models import MapEvent, MapObject, MapScan, MapSegment, MapState, MapUpdate, MapViewRef
 from ._revision import revise
 from ._store import CELL_VOXELS, MapConflictError, MapStore, cell_keys, unpack_array
@@ -63,6 +63,8 @@ class ScanPlan:
     stored_segments: np.ndarray  # map ids of the stored segments in the scene
     stored_objects: np.ndarray  # their objects when prepared
     linked_views: list[MapViewRef]
+    repeats: np.ndarray  # (num_new,) the object of the stored segment each new one repeats (-1: none)
+    revisited_views: list[MapViewRef]  # stored views the scan repeats (left out of the run)
     poses: list[ViewPoseCorrection] | None
     moved_views: list[MovedView]  # stored views whose pose the scan's registration corrected
     warnings: list[str] = field(default_factory=list)
@@ -198,6 +200,11 @@ class SiteMap:
         images = list(new.pixel_segment or [])
         summaries = summarize_views(local, new, images, config.max_depth)
         points = segment_points(new, config.downsample_size)
+        repeats, revisited = np.full(new.num_segments, -1, dtype=np.int64), []
+        if stored is not None:
+            twins, repeats = revisits(summaries, new.view, stored, config.voxel_size)
+            revisited = [MapViewRef(scan=int(stored.view_scans[w]), view=stored.view_names[w]) for w in twins]
+            stored = stored.subset([w for w in range(len(stored.views)) if w not in twins])
         if stored is not None:
             run = SceneBundle(units=config.units, views=[*local.views, *stored.views], name=local.name)
             scene = prepare_segments(run, join_segments(new, stored.segments), config, timings)
@@ -211,6 +218,8 @@ class SiteMap:
             stored_objects=stored.segment_objects if stored else np.zeros(0, np.int64),
             linked_views=[MapViewRef(scan=int(s), view=v) for s, v in zip(stored.view_scans, stored.view_names)]
             if stored else [],
+            repeats=repeats,
+            revisited_views=revisited,
             poses=poses,
             moved_views=moved_views,
             warnings=depth_warnings + list(bundle.warnings) + (pose_warnings(poses) if poses else []),
@@ -261,8 +270,10 @@ class SiteMap:
             n = plan.num_new
             is_new = np.arange(plan.scene.num_segments) < n
             stored_object = np.r_[np.full(n, -1, dtype=np.int64), plan.stored_objects]
-            sizes = store.object_sizes(np.unique(plan.stored_objects).tolist())
-            revision = revise(groups.labels, is_new, stored_object, margin, sizes, store.next_object(), self.min_margin)
+            repeats = np.r_[plan.repeats, np.full(len(plan.stored_segments), -1, dtype=np.int64)]
+            sizes = store.object_sizes(np.unique(np.r_[plan.stored_objects, plan.repeats[plan.repeats >= 0]]).tolist())
+            revision = revise(groups.labels, is_new, stored_object, margin, sizes, store.next_object(), self.min_margin,
+                              repeats)
             scan = store.add_scan(plan.name, len(plan.summaries), n, model_sha256)
             store.add_objects(revision.created, scan)
             view_ids = [store.add_view(scan, s.name, s.pose, s.intrinsics, s.stride, s.depth, s.labels, s.labels_top,
@@ -301,7 +312,7 @@ class SiteMap:
                                support=round(float(support[i]), 6), margin=round(float(margin[i]), 6))
                     for i in range(n)]
         return MapUpdate(scan=scan, name=plan.name, units=config.units, segments=segments, events=events,
-                         linked_views=plan.linked_views, poses=plan.poses,
+                         linked_views=plan.linked_views, revisited_views=plan.revisited_views, poses=plan.poses,
                          timings_ms={k: round(v, 3) for k, v in timings.items()}, warnings=plan.warnings)
 
     # ------------------------------------------------------------------ reads

@@ -83,6 +83,9 @@ class MapUpdate(BaseModel):
     segments: list[MapSegment] = Field(description="every segment of this scan")
     events: list[MapEvent]
     linked_views: list[MapViewRef] = Field(description="the stored views the scan was linked to (same ground)")
+    revisited_views: list[MapViewRef] = Field(default_factory=list, description="stored views the scan repeats (the "
+                                              "same camera): its segments covering a stored segment's pixels take that "
+                                              "segment's id")
     poses: list[ViewPoseCorrection] | None = Field(None, description="pose refinement of this scan's views, relative "
                                                    "to the map's views")
     timings_ms: dict[str, float]

@@ -20,7 +20,10 @@ already belong to:
    the object into the one it joins, and an object left without segments is ``retired``.
 
 Stored segments in groups without new segments never change: what the run re-read of
-evidence already in the map is not new evidence.  Nothing here reads ground truth.
+evidence already in the map is not new evidence.  Nor is a revisit: a new segment that repeats a
+stored one (the same camera, the same pixels; see ``_linking.revisits``) takes that segment's
+id and counts, for the homes, as a stored segment of it; only the scan's other segments are
+new evidence.  Nothing here reads ground truth.
 """
 
 from __future__ import annotations
@@ -55,7 +58,8 @@ class RevisionPlan:
 
 
 def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, margin: np.ndarray,
-           segments_in_map: dict[int, int], first_new_object: int, min_margin: float = 0.0) -> RevisionPlan:
+           segments_in_map: dict[int, int], first_new_object: int, min_margin: float = 0.0,
+           repeats: np.ndarray | None = None) -> RevisionPlan:
     """Object ids for the segments of one run (see the module docstring).
 
     ``group``: the run's group of each segment; ``is_new``: the segment belongs to the scan being
@@ -63,11 +67,14 @@ def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, mar
     ``margin``: each segment's evidence margin in the run (its group's linkage over the best
     alternative); ``segments_in_map``: how many segments each object present in the run has in
     the whole map (to tell when one is left empty); ``first_new_object``: the id a created
-    object gets first.
+    object gets first; ``repeats``: for each new segment that repeats a stored one, that one's
+    object (-1 elsewhere).
     """
     group = np.asarray(group, dtype=np.int64)
+    repeated = np.full(group.size, -1, dtype=np.int64) if repeats is None else np.asarray(repeats, dtype=np.int64)
     is_new = np.asarray(is_new, dtype=bool)
-    stored_object = np.where(is_new, -1, np.asarray(stored_object, dtype=np.int64))
+    fixed = is_new & (repeated >= 0)  # new, but no new evidence: the id it repeats
+    stored_object = np.where(is_new, repeated, np.asarray(stored_object, dtype=np.int64))
     margin = np.asarray(margin, dtype=np.float64)
     n = group.size
     # Groups in order of their first segment, so that ids and events do not depend on label values.
@@ -78,10 +85,10 @@ def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, mar
     group_of = rank[group_of]
     num_groups = order.size
 
-    stored = np.flatnonzero(~is_new)
-    objects, object_of = np.unique(stored_object[stored], return_inverse=True)
+    held = np.flatnonzero(~is_new | fixed)  # segments holding an object already: they decide the homes
+    objects, object_of = np.unique(stored_object[held], return_inverse=True)
     counts = np.zeros((num_groups, objects.size))
-    np.add.at(counts, (group_of[stored], object_of), 1.0)
+    np.add.at(counts, (group_of[held], object_of), 1.0)
     owner = np.full(num_groups, -1, dtype=np.int64)
     home = np.full(objects.size, -1, dtype=np.int64)
     if objects.size:
@@ -90,14 +97,15 @@ def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, mar
         owner[rows[kept]] = objects[cols[kept]]
         home[cols[kept]] = rows[kept]
 
-    has_new = np.bincount(group_of[is_new], minlength=num_groups) > 0
+    evidence = is_new & ~fixed
+    has_new = np.bincount(group_of[evidence], minlength=num_groups) > 0
     movable = ~is_new & (margin > min_margin)
     target = owner.copy()
     next_object = first_new_object
     created: list[int] = []
     for g in np.flatnonzero(has_new & (owner < 0)).tolist():
         members = np.flatnonzero(group_of == g)
-        old = members[~is_new[members]]
+        old = members[~evidence[members]]
         if old.size and not movable[old].any():
             values, votes = np.unique(stored_object[old], return_counts=True)
             target[g] = values[np.argmax(votes)]  # ties: the smaller (older) id
@@ -107,43 +115,49 @@ def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, mar
             next_object += 1
 
     out = stored_object.copy()
-    out[is_new] = target[group_of[is_new]]
+    out[evidence] = target[group_of[evidence]]
     moves = np.flatnonzero(movable & has_new[group_of] & (target[group_of] != stored_object))
     out[moves] = target[group_of[moves]]
 
-    events: list[Revision] = []
     weakest = lambda idx: float(margin[idx].min()) if len(idx) else None  # noqa: E731 - a one-line reducer
 
     def causing(groups: np.ndarray) -> list[int]:
-        return np.flatnonzero(is_new & np.isin(group_of, groups)).tolist()
+        return np.flatnonzero(evidence & np.isin(group_of, groups)).tolist()
 
-    created_set = set(created)
-    for obj in dict.fromkeys(target[group_of[np.flatnonzero(is_new)]].tolist()):  # first-seen order
-        new_segments = np.flatnonzero(is_new & (out == obj)).tolist()
-        kind = "created" if obj in created_set else "observed"
-        events.append(Revision(kind, obj, segments=new_segments, margin=weakest(new_segments)))
-
+    revisions: list[Revision] = []
     merged_into: dict[int, int] = {}
     retired: list[int] = []
+    stored = held[~is_new[held]]
+    stored_of = object_of[~is_new[held]]
     for k, obj in enumerate(objects.tolist()):
-        mine = stored[object_of == k]
+        mine = stored[stored_of == k]
         gone = mine[out[mine] != obj]
         if gone.size == 0:
             continue
         destinations = np.unique(out[gone])
         if home[k] < 0 and gone.size == mine.size and destinations.size == 1:
             into = int(destinations[0])
-            evidence = causing(np.unique(group_of[gone]))
+            cause = causing(np.unique(group_of[gone]))
             merged_into[obj] = into
             retired.append(obj)
-            events.append(Revision("merged", obj, into, evidence, gone.tolist(), weakest(np.r_[evidence, gone])))
+            revisions.append(Revision("merged", obj, into, cause, gone.tolist(), weakest(np.r_[cause, gone])))
             continue
         for into in destinations.tolist():
             moved = gone[out[gone] == into]
-            evidence = causing(np.unique(group_of[moved]))
-            events.append(Revision("split", obj, into, evidence, moved.tolist(), weakest(np.r_[evidence, moved])))
-        if segments_in_map.get(obj, mine.size) - gone.size <= 0:
+            cause = causing(np.unique(group_of[moved]))
+            revisions.append(Revision("split", obj, into, cause, moved.tolist(), weakest(np.r_[cause, moved])))
+        if segments_in_map.get(obj, mine.size) - gone.size + int(np.sum(fixed & (out == obj))) <= 0:
             retired.append(obj)
-            events.append(Revision("retired", obj, segments=[], moved=gone.tolist(), margin=weakest(gone)))
+            revisions.append(Revision("retired", obj, segments=[], moved=gone.tolist(), margin=weakest(gone)))
+    for obj, into in merged_into.items():  # repeats of a merged object's segments follow them
+        out[fixed & (out == obj)] = into
+
+    events: list[Revision] = []
+    created_set = set(created)
+    for obj in dict.fromkeys(out[is_new].tolist()):  # first-seen order
+        new_segments = np.flatnonzero(is_new & (out == obj)).tolist()
+        kind = "created" if obj in created_set else "observed"
+        events.append(Revision(kind, obj, segments=new_segments, margin=weakest(new_segments)))
+    events += revisions
     assert out.size == n
     return RevisionPlan(out, events, merged_into, created, retired)

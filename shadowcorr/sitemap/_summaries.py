@@ -97,6 +97,30 @@ class StoredViews:
     segment_ids: np.ndarray  # (S,) map id of each segment
     segment_objects: np.ndarray  # (S,) current object of each segment
 
+    def subset(self, keep: list[int]) -> "StoredViews | None":
+        """Only the views ``keep`` (indices, ascending) and their segments; None when none is kept."""
+        if not keep:
+            return None
+        seg = self.segments
+        mine = np.isin(seg.view, keep)
+        renumber = np.full(len(self.views), -1, dtype=np.int64)
+        renumber[keep] = np.arange(len(keep))
+        view = renumber[seg.view[mine]]
+        points = seg.points[np.repeat(mine, seg.lengths)]
+        old_first = np.searchsorted(seg.view, np.arange(len(self.views)))
+        new_first = np.searchsorted(view, np.arange(len(keep)))
+        images = []
+        for j, old in enumerate(keep):
+            image = seg.pixel_segment[old]
+            window = np.where(image.window >= 0, image.window - old_first[old] + new_first[j], -1)
+            images.append(SegmentImage(window.astype(image.window.dtype), image.top, image.left, image.shape))
+        segments = Segments(points=points, lengths=seg.lengths[mine], view=view, instance=seg.instance[mine],
+                            component=seg.component[mine], num_pixels=seg.num_pixels[mine],
+                            camera_center=seg.camera_center[mine], optical_axis=seg.optical_axis[mine],
+                            view_names=[seg.view_names[j] for j in keep], pixel_segment=images)
+        return StoredViews([self.views[j] for j in keep], segments, self.view_ids[keep], self.view_scans[keep],
+                           [self.view_names[j] for j in keep], self.segment_ids[mine], self.segment_objects[mine])
+
 
 def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
     """Views and segments of the map (rows of ``views`` and ``segments``, both ordered by view)."""

@@ -1,0 +1,280 @@
+"""The site map (``shadowcorr.SiteMap``): scans added one by one against the scene labelled at once,
+id stability, revisits, and the cost of an update as the map grows.
+
+    python benchmarks/bench_map.py                               # both parts, modest sizes
+    python benchmarks/bench_map.py --part real --field-seeds 5    # the real scene only, more noise draws
+    python benchmarks/bench_map.py --part field --tiles 25        # 500 rocks streamed in 50 scans
+
+**Real scene** (examples/ue_sample, set 2001, 8 cameras 45 degrees apart): the 8 views are added as
+4 scans of 2 views, in several orders, to a new map each time, and the 8 views are labelled at
+once (``correspond``).  Clean and under the quality benchmark's combined ``field`` errors
+(``bench_quality.COMBINED["field"]``: depth 1 %, poses 1 deg / 2.5 cm, eroded, split, merged and
+dropped masks, holes; the same perturbed views for the map and for the one-shot run, one draw per
+``--field-seeds``).  Printed per order: the map's average purity against the truth, the one-shot
+run's, their agreement (the average purity of the map's partition scored against the one-shot
+partition: 100 is the same partition), the share of segments that still carry the id they got
+when their scan was added, the share whose id changed without an event naming it (must be 0),
+the events, and a revisit (the first scan's views added again): the share of its segments that
+get the id their counterpart already has.
+
+**Tiled field**: copies of the real scene 1 km apart (``bench_scale.tile_scene``; each tile's
+rocks are distinct objects), optionally each under its own draw of ``--tile-noise``, streamed
+as scans of 4 views (cameras 0, 2, 4, 6, then 1, 3, 5, 7 of each tile).  Printed: the update time
+against the map's size (early and late updates, each kind of scan apart: a tile's first scan
+links to no stored view, its second to the first's four), the map file's size, the process's
+peak resident memory, and the map's average purity beside the tiles labelled one by one.  The
+plot ``map_updates.png`` (update time against objects in the map) goes to ``--out``.
+
+Times are wall times of one process with ``--threads`` threads on a shared machine: they say how
+the cost grows, not what a dedicated machine would take.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "examples" / "ue_sample"
+sys.path[:0] = [str(REPO), str(Path(__file__).resolve().parent)]
+
+#: Orders in which the real scene's 8 cameras are added, two per scan.
+ORDERS = {
+    "neighbours": [(0, 1), (2, 3), (4, 5), (6, 7)],
+    "reversed": [(6, 7), (4, 5), (2, 3), (0, 1)],
+    "opposite": [(0, 4), (2, 6), (1, 5), (3, 7)],
+    "scattered": [(3, 6), (0, 5), (7, 2), (4, 1)],
+}
+
+
+def truth_of(bundle, view: str, instance: int) -> int:
+    """The true rock of a segment (mask ids are rocks, or the perturbation's table of them)."""
+    if bundle.ground_truth == "instance":
+        return instance
+    table = next(v for v in bundle.views if v.name == view).instance_objects or {}
+    return table.get(instance, -1)
+
+
+def purity(truth: np.ndarray, labels: np.ndarray) -> float:
+    from shadowcorr.evaluation import segment_metrics
+
+    return float(segment_metrics(truth, labels)["average_purity"])
+
+
+def run_order(bundle, order, model, path: Path, one_shot: dict) -> dict:
+    """Add the bundle's views scan by scan in ``order``; the figures of the finished map."""
+    from shadowcorr import SiteMap
+
+    first_id, seconds = {}, []
+    with SiteMap(path, model=model) as site:
+        for cams in order:
+            t0 = time.perf_counter()
+            update = site.add(dataclasses.replace(bundle, views=[bundle.views[c] for c in cams]))
+            seconds.append(time.perf_counter() - t0)
+            first_id.update({s.segment: s.object for s in update.segments})
+        segments = site.segments()
+        events = site.events()
+        named = {}
+        for e in events:
+            for seg in e.segments + e.moved:
+                named.setdefault(seg, set()).update({e.object, e.into})
+        kept = [s.object == first_id[s.segment] for s in segments]
+        unexplained = [s.object != first_id[s.segment] and first_id[s.segment] not in named.get(s.segment, set())
+                       for s in segments]
+        keys = [(s.view, s.instance, s.component) for s in segments]
+        labels = np.array([s.object for s in segments])
+        truth = np.array([truth_of(bundle, s.view, s.instance) for s in segments])
+        common = [i for i, k in enumerate(keys) if k in one_shot]
+        agreement = purity(np.array([one_shot[keys[i]] for i in common]), labels[common])
+        # A revisit: the first scan's views again.  Its segments should get the ids their counterparts
+        # have; where the revisit's evidence revises them (events), the purity after it says whether
+        # the revision was right.
+        now = {(s.view, s.instance, s.component): s.object for s in segments}
+        again = site.add(dataclasses.replace(bundle, views=[bundle.views[c] for c in order[0]]))
+        revisit = [now.get((s.view, s.instance, s.component)) == s.object for s in again.segments]
+        revised = sum(e.kind in ("merged", "split", "retired") for e in again.events)
+        after = [s for s in site.segments() if s.scan <= len(order)]
+        after_purity = purity(np.array([truth_of(bundle, s.view, s.instance) for s in after]),
+                              np.array([s.object for s in after]))
+    kinds = {k: sum(e.kind == k for e in events) for k in ("created", "observed", "merged", "split", "retired")}
+    return {"purity": purity(truth, labels), "agreement": agreement, "kept": 100 * float(np.mean(kept)),
+            "unexplained": int(np.sum(unexplained)), "revisit": 100 * float(np.mean(revisit)), "revisit_revisions": revised,
+            "purity_after_revisit": after_purity, "events": kinds,
+            "seconds": seconds, "segments": len(segments)}
+
+
+def real_scene(model, field_seeds: int, work: Path) -> list[dict]:
+    from shadowcorr import correspond
+    from shadowcorr.convert import load_ue_scene
+    from tests.harness import load_bench_quality
+
+    quality = load_bench_quality()
+    clean = load_ue_scene(SAMPLE, 2001, list(range(8)))
+    draws = [("clean", clean)] + [
+        (f"field#{k}", quality.perturb(clean, "field", quality.perturbation_seed("real:all8", "field", k)))
+        for k in range(field_seeds)]
+    rows = []
+    for condition, bundle in draws:
+        result = correspond(bundle, model)
+        one_shot = {(s.view, s.instance, s.component): s.object for s in result.segments}
+        truth = np.array([truth_of(bundle, s.view, s.instance) for s in result.segments])
+        one_purity = purity(truth, np.array([s.object for s in result.segments]))
+        for name, order in ORDERS.items():
+            path = work / f"{condition}-{name}.map"
+            row = {"condition": condition, "order": name, "one_shot": one_purity,
+                   **run_order(bundle, order, model, path, one_shot)}
+            rows.append(row)
+            print(f"{condition:9} {name:10} map {row['purity']:6.2f}  one-shot {one_purity:6.2f}  agreement "
+                  f"{row['agreement']:6.2f}  ids kept {row['kept']:6.2f} %  unexplained {row['unexplained']}  revisit "
+                  f"{row['revisit']:6.2f} % ({row['revisit_revisions']} revisions, purity then "
+                  f"{row['purity_after_revisit']:6.2f})  events {row['events']}  updates "
+                  f"{' '.join(f'{s:.2f}' for s in row['seconds'])} s", flush=True)
+    return rows
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def tiled_field(model, tiles: int, tile_noise: str | None, work: Path, out: Path) -> dict:
+    import math
+
+    from bench_scale import place_tile
+
+    from shadowcorr import SiteMap, correspond
+    from shadowcorr.convert import load_ue_scene
+    from tests.harness import load_bench_quality
+
+    base = load_ue_scene(SAMPLE, 2001, list(range(8)))
+    quality = load_bench_quality() if tile_noise else None
+    side = math.ceil(math.sqrt(tiles))
+    path = work / "field.map"
+    records, alone, truth = [], [], {}
+    with SiteMap(path, model=model) as site:
+        for t in range(tiles):
+            tile = base
+            if tile_noise:
+                tile = quality.perturb(base, tile_noise, quality.perturbation_seed(f"tile{t}", tile_noise, 0))
+            # One tile at a time at its place in the field: the process never holds more than its images.
+            placed = place_tile(tile, t, side, TILE_SPACING, TILE_IDS)
+            for half, cams in enumerate(((0, 2, 4, 6), (1, 3, 5, 7))):
+                scan = dataclasses.replace(tile, views=[placed[c] for c in cams], name=f"tile{t}-{half}",
+                                           ground_truth="none")
+                t0 = time.perf_counter()
+                update = site.add(scan)
+                seconds = time.perf_counter() - t0
+                for s in update.segments:  # the rock, made distinct per tile
+                    truth[s.segment] = truth_of(tile, s.view.split("_", 1)[1], s.instance - t * TILE_IDS) + t * TILE_IDS
+                records.append({"tile": t, "half": half, "seconds": seconds, "objects": len(site.objects()),
+                                "linked": len(update.linked_views),
+                                **{k: update.timings_ms.get(k, 0.0) for k in ("map_read", "map_write", "total")}})
+            if t < 3:  # tiles labelled alone, for comparison
+                result = correspond(tile, model)
+                alone.append(purity(np.array([truth_of(tile, s.view, s.instance) for s in result.segments]),
+                                    np.array([s.object for s in result.segments])))
+            print(f"tile {t + 1}/{tiles}: {records[-1]['objects']} objects, updates "
+                  f"{records[-2]['seconds']:.2f} / {records[-1]['seconds']:.2f} s, peak RSS {_peak_rss_mb():.0f} MB",
+                  flush=True)
+        labels = {s.segment: s.object for s in site.segments()}
+    keys = sorted(labels)
+    summary = summarize_field(records)
+    summary.update(map_mb=sum(p.stat().st_size for p in work.glob("field.map*")) / 2**20,
+                   peak_rss_mb=_peak_rss_mb(), tiles=tiles, rocks=tiles * 20, scans=len(records),
+                   purity=purity(np.array([truth[k] for k in keys]), np.array([labels[k] for k in keys])),
+                   tiles_alone=float(np.mean(alone)))
+    plot(records, out / "map_updates.png")
+    return {"records": records, "summary": summary}
+
+
+#: Tiles lie 1 km apart (no view sees another tile) and a tile's mask ids are shifted by this much.
+TILE_SPACING = 100_000.0
+TILE_IDS = 1000
+
+
+def summarize_field(records: list[dict]) -> dict:
+    out = {}
+    for half, name in ((0, "first"), (1, "second")):
+        times = [r["seconds"] for r in records if r["half"] == half]
+        k = max(1, min(5, len(times) // 3))
+        out[f"{name}_early_s"], out[f"{name}_late_s"] = float(np.mean(times[:k])), float(np.mean(times[-k:]))
+        out[f"{name}_ratio"] = out[f"{name}_late_s"] / out[f"{name}_early_s"]
+        out[f"{name}_slope_ms_per_100_objects"] = float(np.polyfit(
+            [r["objects"] for r in records if r["half"] == half], times, 1)[0] * 1e5) if len(times) > 1 else 0.0
+    return out
+
+
+def plot(records: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for half, label in ((0, "a tile's first scan (no stored view linked)"), (1, "its second scan (4 linked)")):
+        rows = [r for r in records if r["half"] == half]
+        ax.plot([r["objects"] for r in rows], [r["seconds"] for r in rows], "o-", ms=3, label=label)
+    ax.set_xlabel("objects in the map after the update")
+    ax.set_ylabel("update time (s, wall)")
+    ax.set_ylim(bottom=0)
+    ax.set_title("SiteMap.add: 4-view scans of a tiled field")
+    ax.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--part", choices=["real", "field", "both"], default="both")
+    p.add_argument("--field-seeds", type=int, default=2, help="draws of the field errors on the real scene")
+    p.add_argument("--tiles", type=int, default=25, help="tiles of the field (20 rocks each)")
+    p.add_argument("--tile-noise", default=None, help="a bench_quality perturbation per tile (e.g. mild); default none")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--out", default="out/bench_map")
+    args = p.parse_args(argv)
+
+    import torch
+
+    from shadowcorr import load_model
+
+    torch.set_num_threads(args.threads)
+    model = load_model()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        if args.part in ("real", "both"):
+            rows = real_scene(model, args.field_seeds, work)
+            report["real"] = rows
+            for condition in dict.fromkeys(r["condition"] for r in rows):
+                mine = [r for r in rows if r["condition"] == condition]
+                print(f"{condition}: map purity min {min(r['purity'] for r in mine):.2f} / mean "
+                      f"{np.mean([r['purity'] for r in mine]):.2f}, one-shot {mine[0]['one_shot']:.2f}, agreement min "
+                      f"{min(r['agreement'] for r in mine):.2f}, ids kept min {min(r['kept'] for r in mine):.2f} %, "
+                      f"unexplained id changes {sum(r['unexplained'] for r in mine)}, revisit min "
+                      f"{min(r['revisit'] for r in mine):.2f} %")
+        if args.part in ("field", "both"):
+            field = tiled_field(model, args.tiles, args.tile_noise, work, out)
+            report["field"] = field
+            s = field["summary"]
+            print(f"field: {s['rocks']} rocks, {s['scans']} scans; first scans {s['first_early_s']:.2f} -> "
+                  f"{s['first_late_s']:.2f} s (x{s['first_ratio']:.2f}), second scans {s['second_early_s']:.2f} -> "
+                  f"{s['second_late_s']:.2f} s (x{s['second_ratio']:.2f}); map file {s['map_mb']:.1f} MB; peak RSS "
+                  f"{s['peak_rss_mb']:.0f} MB; purity {s['purity']:.2f} (tiles alone {s['tiles_alone']:.2f}); "
+                  f"plot {out / 'map_updates.png'}")
+    (out / "bench_map.json").write_text(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
