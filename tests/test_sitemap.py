@@ -49,6 +49,11 @@ def key(s) -> tuple:
     return s.view, s.instance, s.component
 
 
+def contents(site: SiteMap) -> tuple[list[dict], list[dict]]:
+    """Every segment and event of the map, as plain data."""
+    return [s.model_dump() for s in site.segments()], [e.model_dump() for e in site.events()]
+
+
 def test_scans_in_any_order_give_the_one_shot_partition(tmp_path, model, ring) -> None:
     one_shot = {key(s): s.object for s in correspond(ring, model).segments}
     pairs = [("cam0", "cam1"), ("cam2", "cam3"), ("cam4", "cam5"), ("cam6", "cam7")]
@@ -153,11 +158,9 @@ def test_the_map_file_keeps_arrays_as_raw_bytes_and_reopens_intact(tmp_path, mod
     path = tmp_path / "site.map"
     with SiteMap(path, model=model) as site:
         site.add(views(ring, "cam0", "cam3"))
-        before = [s.model_dump() for s in site.segments()]
-        events = [e.model_dump() for e in site.events()]
+        before = contents(site)
     with SiteMap(path, create=False) as site:
-        assert [s.model_dump() for s in site.segments()] == before
-        assert [e.model_dump() for e in site.events()] == events
+        assert contents(site) == before
     db = sqlite3.connect(path)
     assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     dtypes = {r[0] for r in db.execute("SELECT points_dtype FROM segments")}
@@ -219,8 +222,7 @@ def test_a_writer_killed_mid_update_leaves_every_earlier_update(tmp_path, model,
     path = tmp_path / "site.map"
     with SiteMap(path, model=model) as site:
         site.add(views(ring, "cam0", "cam1"))
-        segments = [s.model_dump() for s in site.segments()]
-        events = [e.model_dump() for e in site.events()]
+        before = contents(site)
     second = write_bundle(views(ring, "cam4", "cam5"), tmp_path / "second")
     writer = subprocess.Popen([sys.executable, "-c", STALLED_WRITER, str(path), str(second)], cwd=REPO,
                               stdout=subprocess.PIPE, text=True)
@@ -231,7 +233,7 @@ def test_a_writer_killed_mid_update_leaves_every_earlier_update(tmp_path, model,
             with pytest.raises(MapBusyError, match="another writer"):
                 site.add(views(ring, "cam6"))
             assert time.monotonic() - t0 < 5.0  # refused, not queued
-            assert [s.model_dump() for s in site.segments()] == segments  # readers read the last commit
+            assert contents(site) == before  # readers read the last commit
         os.kill(writer.pid, signal.SIGKILL)
         writer.wait(timeout=30)
     finally:
@@ -240,12 +242,11 @@ def test_a_writer_killed_mid_update_leaves_every_earlier_update(tmp_path, model,
             writer.wait()
     assert writer.returncode == -signal.SIGKILL
     with SiteMap(path, model=model, create=False) as site:
-        assert [s.model_dump() for s in site.segments()] == segments
-        assert [e.model_dump() for e in site.events()] == events
+        assert contents(site) == before
         assert [s.scan for s in site.scans()] == [1]
         update = site.add(views(ring, "cam4", "cam5"))  # the killed update, repeated
         assert update.scan == 2 and {s.view for s in update.segments} == {"cam4", "cam5"}
-        assert json.loads(site.state().model_dump_json())["segments"][0]["object"] == segments[0]["object"]
+        assert json.loads(site.state().model_dump_json())["segments"][0]["object"] == before[0][0]["object"]
 
 
 def test_map_commands_add_scans_and_show_the_map(tmp_path, ring, capsys) -> None:
