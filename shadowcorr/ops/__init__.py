@@ -9,12 +9,14 @@ the number of segments given explicitly (segments may be empty):
 - :func:`segment_chunks` - row ranges of whole segments, to bound the memory of expansions;
 - :func:`separation_gap`, :func:`separated` - segments moved apart so that one k-d tree
   answers per-segment neighbour queries;
+- :func:`relative_depth_noise` - a depth image's noise (``sigma = a z^2``), estimated from itself;
 - :func:`thread_map`, :func:`resolve_threads` - independent chunks or views of a stage on
   ``num_threads`` threads.
 """
 
 from __future__ import annotations
 
+from ._depth_noise import relative_depth_noise
 from ._grid_keys import pack_cell_keys, unique_keys
 from ._segment_chunks import segment_chunks
 from ._segment_reduce import segment_max, segment_min, segment_range, segment_starts
@@ -22,6 +24,6 @@ from ._segment_separation import separated, separation_gap
 from ._thread_map import resolve_threads, thread_map
 
 __all__ = [
-    "pack_cell_keys", "segment_chunks", "segment_max", "segment_min", "segment_range", "segment_starts", "separated",
+    "pack_cell_keys", "relative_depth_noise", "segment_chunks", "segment_max", "segment_min", "segment_range", "segment_starts", "separated",
     "separation_gap", "resolve_threads", "thread_map", "unique_keys",
 ]

@@ -78,7 +78,7 @@ from scipy.spatial.transform import Rotation
 
 from ..bundle import SceneBundle, View, unit_scale
 from ..config import ShadowCorrConfig
-from ..ops import thread_map
+from ..ops import relative_depth_noise, thread_map
 from ..result import ViewPoseCorrection
 from ._02_segments import back_project
 
@@ -206,20 +206,6 @@ def _grid_normals(grid: np.ndarray, depth: np.ndarray, camera: np.ndarray, spaci
     return normals
 
 
-def _relative_depth_noise(depth: np.ndarray) -> float:
-    """The depth noise of a view as ``a`` in ``sigma(z) = a z^2`` (the growth of stereo and ToF
-    noise), estimated from the data: along each grid row a smooth surface's second difference
-    is nearly zero, while independent noise gives it a standard deviation of sqrt(6) sigma.
-    The median absolute value (robust to the depth edges in between) of ``d2 / z^2`` gives
-    ``a``; 0 when the grid has too few valid triples."""
-    rows = depth[::2]  # every other row is plenty for one number, at half the cost
-    d2 = rows[:, :-2] - 2.0 * rows[:, 1:-1] + rows[:, 2:]
-    with np.errstate(invalid="ignore"):
-        ratio = np.abs(d2) / rows[:, 1:-1] ** 2
-    ratio = ratio[np.isfinite(ratio)]
-    return float(1.4826 * np.median(ratio) / np.sqrt(6.0)) if ratio.size >= 100 else 0.0
-
-
 def _normal_reach(median_depth: float, relative_noise: float, spacing_per_depth: float) -> int:
     """How many samples either way a normal is taken over, so that the depth noise tilts it by
     about a tenth of a radian at most (at the median depth): the difference of two samples
@@ -251,7 +237,7 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     spacing_per_depth = stride / max(k.fx, k.fy)
     # Under depth noise, neighbouring samples' differences are mostly noise: normals span as many
     # samples as the view's measured noise needs (one either way on clean depth).
-    relative_noise = _relative_depth_noise(depth)
+    relative_noise = relative_depth_noise(depth)
     quarter = depth[::2, ::2]
     median_depth = float(np.nanmedian(quarter)) if np.isfinite(quarter).any() else 0.0
     normals = _grid_normals(grid, depth * scale, camera, spacing_per_depth,
@@ -724,7 +710,7 @@ def refine_poses(
             correction[:3, :3] = r
             correction[:3, 3] = (t + centre - r @ centre) / scale  # centred config frame -> bundle world frame
         angle, shift = (float(degrees[k]), float(shifts[k])) if status[k] == "corrected" else (0.0, 0.0)
-        consistent = miss <= agree / 2.0 if status[k] in ("corrected", "unchanged") else None
+        consistent = bool(miss <= agree / 2.0) if status[k] in ("corrected", "unchanged") else None
         message = why.get(k) if status[k] != "corrected" else None
         if consistent is False:
             message = f"refined pose still disagrees with its neighbours by {miss / scale:.3g} {bundle.units}"

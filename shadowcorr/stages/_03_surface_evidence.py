@@ -28,7 +28,7 @@ so a large field costs what its overlapping views cost, not ``points x views``.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -36,6 +36,7 @@ from ..bundle import SceneBundle, unit_scale
 from ..config import ShadowCorrConfig
 from ..ops import segment_max, thread_map, unique_keys
 from ._02_segments import SegmentImage, Segments
+from ._03_seams import Seams, smooth_seams
 
 
 @dataclass
@@ -49,6 +50,8 @@ class SurfaceEvidence:
     hit_source: np.ndarray  # (H,) int64 segment a
     hit_target: np.ndarray  # (H,) int64 segment b (another view)
     hit_count: np.ndarray  # (H,) int64 points of a landing on b
+    # Pairs of segments of one view that meet on one smooth surface (stage 03 seams).
+    seams: Seams = field(default_factory=Seams.empty)
 
     @property
     def num_segments(self) -> int:
@@ -200,4 +203,5 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
     count = np.concatenate(counts) if counts else np.zeros(0, np.int64)
     # A pair (a, b) appears in one view only (b's own view), so keys never repeat.
     points = np.stack(xyz, axis=1).astype(np.float32)
-    return SurfaceEvidence(samples, points, visible, on_mask, key // s, key % s, count.astype(np.int64))
+    return SurfaceEvidence(samples, points, visible, on_mask, key // s, key % s, count.astype(np.int64),
+                           smooth_seams(bundle, segments, config))

@@ -30,7 +30,8 @@ Two ways to resolve the evidence, one per method:
     other views can still join a split mask, and a tiny blob nothing else sees joins the
     other blobs of its mask.  The mask ids the constraints read come from
     :func:`split_mask_ids`: two masks of one view whose segments land together on one
-    segment in several other views count as one (split) mask.
+    segment in several other views, or that meet on one smooth surface in their own view
+    (stage 03 seams), count as one (split) mask.
 
 Before grouping, segments that look like one mask drawn over two objects are found
 (:func:`merged_mask_segments`: the segment spreads over two segments of another view that
@@ -404,11 +405,47 @@ def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndar
     ``fusion_split_views`` views and in at least ``fusion_split_share`` of the views where
     both land on a mask, b's id is taken to be a's for the constraints (blobs of one mask):
     the surface and volumetric evidence still decide whether they join.
+
+    Neighbours of one view whose shared border is one smooth surface
+    (``surface.seams``, :func:`shadowcorr.stages.smooth_seams`) are taken as one mask too.
+    That needs no other view, and it is what mends the split masks that mask errors leave
+    unmended together: a half that no other view sees whole (the rock's other views show it
+    under a merged mask, or the halves are each seen by a different view) co-lands nowhere,
+    and the cannot-link of its view kept it apart from its other half.
     """
     s = view.size
     out = instance.copy()
-    if s == 0 or surface.hit_count.size == 0 or config.fusion_split_views == 0:
+    if s == 0:
         return out
+    p, q = _colanding_pairs(surface, view, instance, config)
+    # Neighbours of one view meeting on one smooth surface (stage 03 seams) count as well,
+    # unless another view sees them apart: the seam needs no other view, which a rock seen
+    # once, or seen elsewhere under a merged mask, lacks; in noisy depth two rocks can pass
+    # for one surface, and the views that see them apart say so.
+    seam_p, seam_q = surface.seams.first, surface.seams.second
+    if seam_p.size:
+        together = ~_seen_apart(_mostly_on(surface, view, config), instance, seam_p, seam_q)
+        p, q = np.r_[p, seam_p[together]], np.r_[q, seam_q[together]]
+    if p.size == 0:
+        return out
+    graph = coo_matrix((np.ones(p.size), (p, q)), shape=(s, s))
+    _, comp = connected_components(graph, directed=False)
+    # Every segment of a component takes the smallest id of its members (ids compared within a view only).
+    smallest = np.full(comp.max() + 1, np.iinfo(np.int64).max)
+    np.minimum.at(smallest, comp, instance)
+    joined = np.bincount(comp, minlength=comp.max() + 1)[comp] > 1
+    out[joined] = smallest[comp[joined]]
+    return out
+
+
+def _colanding_pairs(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndarray, config: ShadowCorrConfig
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of segments of one view that co-land often enough to be halves of one mask (see
+    :func:`split_mask_ids`)."""
+    none = np.zeros(0, dtype=np.int64)
+    if surface.hit_count.size == 0 or config.fusion_split_views == 0:
+        return none, none
+    s = view.size
     strong = _strong_landings(surface, view, config)
     # Pairs of same-view sources landing mostly on one target: group the strong hits by (target, source view).
     a, t = surface.hit_source[strong], surface.hit_target[strong]
@@ -417,7 +454,7 @@ def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndar
     a, t, key = a[order], t[order], key[order]
     first, pair_at = _pairs_within(key)
     if first.size == 0:
-        return out
+        return none, none
     p, q, t = a[first], a[pair_at], t[first]
     # The target must cover both: its landings in their view, on each of them.
     hits_from = _hit_lookup(surface)
@@ -429,16 +466,7 @@ def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndar
     both = ((surface.on_mask[p] >= config.projection_min_points)
             & (surface.on_mask[q] >= config.projection_min_points)).sum(axis=1)
     split = (colanding >= config.fusion_split_views) & (colanding >= config.fusion_split_share * both)
-    if not split.any():
-        return out
-    graph = coo_matrix((np.ones(int(split.sum())), (p[split], q[split])), shape=(s, s))
-    _, comp = connected_components(graph, directed=False)
-    # Every segment of a component takes the smallest id of its members (ids compared within a view only).
-    smallest = np.full(comp.max() + 1, np.iinfo(np.int64).max)
-    np.minimum.at(smallest, comp, instance)
-    joined = np.bincount(comp, minlength=comp.max() + 1)[comp] > 1
-    out[joined] = smallest[comp[joined]]
-    return out
+    return p[split], q[split]
 
 
 def _pairs_within(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -483,6 +511,21 @@ def _strong_landings(surface: SurfaceEvidence, view: np.ndarray, config: ShadowC
     return (landed >= config.projection_min_points) & (hits >= config.fusion_split_landing * landed)
 
 
+def _mostly_on(surface: SurfaceEvidence, view: np.ndarray, config: ShadowCorrConfig) -> np.ndarray:
+    """(S, V) the segment of view j each segment lands mostly on (``_strong_landings``), -1 where none."""
+    strong = _strong_landings(surface, view, config)
+    mostly = np.full((view.size, int(view.max()) + 1), -1, dtype=np.int64)
+    mostly[surface.hit_source[strong], view[surface.hit_target[strong]]] = surface.hit_target[strong]
+    return mostly
+
+
+def _seen_apart(mostly: np.ndarray, instance: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Per pair: does some view see p and q apart (each lands mostly on a segment there, two
+    segments with different mask ids)?"""
+    u, v = mostly[p], mostly[q]  # (pairs, views)
+    return ((u >= 0) & (v >= 0) & (u != v) & (instance[u] != instance[v])).any(axis=1)
+
+
 def merged_mask_segments(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndarray,
                          config: ShadowCorrConfig) -> np.ndarray:
     """Which segments look like one mask drawn over two objects (a segmenter's merged mask).
@@ -519,14 +562,9 @@ def merged_mask_segments(surface: SurfaceEvidence, view: np.ndarray, instance: n
     a, t, key = a[order], t[order], key[order]
     i, j = _pairs_within(key)
     m, t1, t2 = a[i], t[i], t[j]
-    # Where each segment lands mostly, per view (-1: nowhere).
-    strong = _strong_landings(surface, view, config)
-    mostly = np.full((s, int(view.max()) + 1), -1, dtype=np.int64)
-    mostly[surface.hit_source[strong], view[surface.hit_target[strong]]] = surface.hit_target[strong]
+    mostly = _mostly_on(surface, view, config)
     covers = (instance[t1] != instance[t2]) & (mostly[t1, view[m]] == m) & (mostly[t2, view[m]] == m)
-    u1, u2 = mostly[t1], mostly[t2]  # (pairs, views)
-    apart = (u1 >= 0) & (u2 >= 0) & (u1 != u2) & (instance[u1] != instance[u2])
-    merged[m[covers & apart.any(axis=1)]] = True
+    merged[m[covers & _seen_apart(mostly, instance, t1, t2)]] = True
     return merged
 
 

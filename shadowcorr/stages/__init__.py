@@ -5,6 +5,7 @@
     01 poses             SceneBundle -> SceneBundle with corrected poses   (optional: refine_poses)
     02 segments          SceneBundle -> Segments: one 3D point shell per mask blob
     03 surface_evidence  Segments -> SurfaceEvidence: where each segment lands in the other views
+    03 seams             Segments + depth images -> Seams: neighbours of one view on one smooth surface
     04 shells            Segments -> SegmentShells: cleaned points, error ellipsoid, viewing direction
     05 shadows           SegmentShells -> ShadowVoxels: confidence-weighted voxels behind each shell
     05 occupancy         ShadowVoxels + depth images -> ShadowOccupancy: the solid share of each shadow voxel
@@ -47,6 +48,8 @@ _EXPORTS = {
     "SurfaceEvidence": "_03_surface_evidence",
     "sample_segment_points": "_03_surface_evidence",
     "surface_evidence": "_03_surface_evidence",
+    "Seams": "_03_seams",
+    "smooth_seams": "_03_seams",
     # 04 shells
     "SegmentShells": "_04_shells",
     "voxel_downsample": "_04_shells",
@@ -117,6 +120,7 @@ __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._01_poses import pose_warnings, refine_poses
     from ._02_segments import Blobs, SegmentImage, Segments, back_project, check_valid_depth, extract_segments, find_blobs
+    from ._03_seams import Seams, smooth_seams
     from ._03_surface_evidence import SurfaceEvidence, sample_segment_points, surface_evidence
     from ._04_shells import SegmentShells, raw_shells, remove_statistical_outliers, segment_shells, voxel_downsample
     from ._05_occupancy import ShadowOccupancy, shadow_occupancy

@@ -1,0 +1,127 @@
+"""Stage 03 seams: neighbouring masks of one view on one smooth surface, against an occlusion contour."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from shadowcorr import ShadowCorrConfig
+from shadowcorr.ops import relative_depth_noise
+from shadowcorr.stages import SegmentImage, extract_segments, smooth_seams
+from shadowcorr.stages._03_seams import _view_seams
+
+from .scenes import sphere_scene
+
+H, W = 120, 160
+
+
+def _tilted_plane(z0: float = 500.0, slope: float = 0.8) -> np.ndarray:
+    """Depth of a plane tilted along the rows and columns (cm): a steep, smooth surface."""
+    rows, cols = np.mgrid[0:H, 0:W].astype(np.float64)
+    return z0 + slope * rows + 0.3 * slope * cols
+
+
+def _image(labels: np.ndarray) -> SegmentImage:
+    return SegmentImage(labels.astype(np.int16), 0, 0, labels.shape)
+
+
+def _two_halves(gap: int, diagonal: bool = False) -> np.ndarray:
+    """One blob 20..100 x 30..130 cut in two by a vertical (or slanted) line ``gap`` pixels wide."""
+    labels = np.full((H, W), -1, dtype=np.int64)
+    rows, cols = np.mgrid[0:H, 0:W]
+    inside = (rows >= 20) & (rows < 100) & (cols >= 30) & (cols < 130)
+    cut = 80 + (0.5 * (rows - 60) if diagonal else 0)
+    labels[inside & (cols < cut)] = 0
+    labels[inside & (cols >= cut + gap)] = 1
+    return labels
+
+
+@pytest.mark.parametrize("gap,diagonal", [(0, False), (3, False), (6, True)])
+def test_a_cut_across_one_surface_is_a_smooth_seam(gap, diagonal):
+    seams = _view_seams(_image(_two_halves(gap, diagonal)), _tilted_plane(), ShadowCorrConfig())
+    assert seams.first.tolist() == [0] and seams.second.tolist() == [1]
+    assert seams.samples[0] >= 60 and abs(seams.step[0]) < 1e-9  # a plane: the slope explains every step
+
+
+def test_an_occlusion_contour_is_no_seam():
+    """The right half is a different surface 8 % farther (a rock behind its neighbour)."""
+    depth = _tilted_plane()
+    labels = _two_halves(2)
+    depth[labels == 1] *= 1.08
+    assert _view_seams(_image(labels), depth, ShadowCorrConfig()).first.size == 0
+
+
+def test_a_gap_wider_than_fusion_seam_gap_is_no_seam():
+    config = ShadowCorrConfig()
+    assert _view_seams(_image(_two_halves(config.fusion_seam_gap + 1)), _tilted_plane(), config).first.size == 0
+    assert _view_seams(_image(_two_halves(config.fusion_seam_gap)), _tilted_plane(), config).first.size == 1
+
+
+def test_noisy_depth_needs_a_longer_seam():
+    """Noise sigma = a z^2 (0.5 % at 7.5 m): a long cut across a noisy surface still reads as smooth
+    (the signed median cancels the noise); a seam too short for that noise does not count, though
+    the same seam counts in clean depth; an occlusion step stays out either way."""
+    rng = np.random.default_rng(3)
+    clean = _tilted_plane(z0=750.0)
+    a = 0.005 / 750.0
+    noisy = clean + rng.normal(size=clean.shape) * a * clean ** 2
+    assert relative_depth_noise(noisy) == pytest.approx(a, rel=0.25)
+    config = ShadowCorrConfig()
+    labels = _two_halves(3)
+    seams = _view_seams(_image(labels), noisy, config)
+    assert seams.first.tolist() == [0]
+    n = seams.samples[0]
+    assert seams.uncertainty[0] == pytest.approx(2.5 * a * 750.0 / np.sqrt(n), rel=0.3)
+    short = labels.copy()
+    short[:94] = -1  # the halves now share 6 rows of their border
+    few = config.with_options(fusion_seam_min_pixels=4)
+    assert _view_seams(_image(short), noisy, few).first.size == 0
+    assert _view_seams(_image(short), clean, few).first.tolist() == [0]
+    stepped = noisy.copy()
+    stepped[labels == 1] *= 1.03
+    assert _view_seams(_image(labels), stepped, config).first.size == 0
+    assert _view_seams(_image(labels), stepped, config.with_options(fusion_seam_noise=0.0)).first.size == 0
+
+
+def test_mixed_pixels_on_the_contour_do_not_make_a_seam():
+    """The contour pixels of an occlusion hold depth between the two surfaces (a ToF or stereo
+    sensor's mixed pixels): the step is read inside each side, so the jump still shows."""
+    depth = _tilted_plane()
+    labels = _two_halves(0)
+    depth[labels == 1] *= 1.08
+    cols = np.flatnonzero((labels == 1).any(axis=0))[0]
+    depth[:, cols - 1:cols + 1] = 0.5 * (depth[:, cols - 2:cols] + depth[:, cols + 1:cols + 3])
+    assert _view_seams(_image(labels), depth, ShadowCorrConfig()).first.size == 0
+
+
+def test_invalid_depth_on_the_seam_is_not_sampled():
+    depth = _tilted_plane()
+    labels = _two_halves(2)
+    depth[:, 70:90] = 0.0  # no depth along the whole cut
+    assert _view_seams(_image(labels), depth, ShadowCorrConfig()).first.size == 0
+
+
+def test_touching_spheres_have_no_seam_and_a_split_sphere_has_one():
+    """On a rendered scene: two touching spheres meet along occlusion contours (no seam in any view);
+    one sphere's mask cut in two by a line in one view gives exactly that pair."""
+    bundle = sphere_scene([[0, 0, 40], [78, 0, 40]], [40, 40], cameras=4, width=480, height_px=270)
+    config = ShadowCorrConfig()
+    segments = extract_segments(bundle, config)
+    assert smooth_seams(bundle, segments, config).first.size == 0
+
+    view = bundle.views[0]
+    mask = np.asarray(view.mask).copy()
+    ids = [i for i in np.unique(mask) if i > 0]
+    rows, cols = np.nonzero(mask == ids[0])
+    cut = mask == ids[0]
+    cut &= np.arange(mask.shape[1])[None, :] >= int(np.median(cols))
+    mask[cut] = 99
+    split = replace(bundle, views=[replace(view, mask=mask), *bundle.views[1:]])
+    segments = extract_segments(split, config)
+    seams = smooth_seams(split, segments, config)
+    assert seams.first.size == 1
+    pair = {int(segments.instance[seams.first[0]]), int(segments.instance[seams.second[0]])}
+    assert pair == {int(ids[0]), 99} and segments.view[seams.first[0]] == 0
+    assert smooth_seams(split, segments, config.with_options(fusion_seam_gap=0)).first.size == 0
