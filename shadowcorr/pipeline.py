@@ -179,9 +179,10 @@ def assign(
     timings["assign"] = _ms_since(t0)
     t0 = time.perf_counter()  # 11
     points = _fused_points(scene, seg_object, num_objects)
-    geometry = object_geometry(points, scene.occupancy, seg_object, scene.segment_view, scene.shell_count,
-                               scene.view_poses, scene.unit_scale, scene.config)
-    objects = with_geometry(objects, geometry, support, seg_object)
+    if scene.shell_points is not None:  # a scene read back from a training cache carries no shells
+        geometry = object_geometry(points, scene.occupancy, seg_object, scene.segment_view, scene.shell_count,
+                                   scene.view_poses, scene.unit_scale, scene.config)
+        objects = with_geometry(objects, geometry, support, seg_object)
     timings["geometry"] = _ms_since(t0)
 
     scores = None

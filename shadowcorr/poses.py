@@ -64,14 +64,16 @@ def slerp(q0, q1, t: float) -> np.ndarray:
 UP_AXES = ("auto", "x", "y", "z", "-x", "-y", "-z")
 
 
-def world_up(poses: np.ndarray, up_axis: str = "auto") -> tuple[int, float]:
+def world_up(poses: np.ndarray | None, up_axis: str = "auto") -> tuple[int, float]:
     """The world axis pointing up, as (axis index, sign), for camera-to-world ``poses`` (V, 4, 4), OpenCV.
 
     ``auto`` takes the axis nearest to the cameras' mean up direction (``-y`` of the
     OpenCV camera frame): cameras are mounted upright, whatever the world's convention.
+    Without poses (None or none at all, e.g. a scene read back from a training cache) it is +z.
     """
     if up_axis == "auto":
-        camera_up = -np.asarray(poses)[:, :3, 1].mean(axis=0) if len(poses) else np.array([0.0, 0.0, 1.0])
+        has_poses = poses is not None and len(poses) > 0
+        camera_up = -np.asarray(poses)[:, :3, 1].mean(axis=0) if has_poses else np.array([0.0, 0.0, 1.0])
         if not np.any(np.abs(camera_up) > 1e-9):
             camera_up = np.array([0.0, 0.0, 1.0])
         k = int(np.argmax(np.abs(camera_up)))

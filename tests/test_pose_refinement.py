@@ -234,8 +234,6 @@ def _depth_scaled(bundle: SceneBundle, view: int, factor: float) -> SceneBundle:
     return dataclasses.replace(bundle, views=views)
 
 
-@pytest.mark.xfail(strict=True, reason="refine_poses computes `consistent` as a numpy bool, so `consistent is False` "
-                   "never holds there and the report's message stays None (a one-line fix in stage 01)")
 def test_a_view_still_inconsistent_after_refinement_is_reported_with_its_disagreement(truth):
     # One camera whose depth reads 5 % long: its registrations cannot all agree with one pose.
     bundle = _depth_scaled(truth, 1, 1.05)
