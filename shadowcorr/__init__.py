@@ -74,8 +74,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from .errors import BundleError, DepthRangeError, Problem, SceneLimitError
     from .io import BundleLimits, load_bundle, load_bundle_from_parts, write_bundle, write_bundle_archive
     from .nn import Model, ModelCard, load_model, save_model
+    from .export import export
     from .pipeline import assign, correspond, embed, object_points, prepare
     from .result import ObjectSummary, OrientedBox, Result, SegmentLabel, ViewPoseCorrection
     from .sitemap import MapBusyError, MapUpdate, SiteMap, add_to_map
     from .stages import ObjectPoints, VoxelScene, refine_poses
-    from .export import export
