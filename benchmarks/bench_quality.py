@@ -636,17 +636,19 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--resume", action="store_true", help="keep the runs already in OUT/records.jsonl (same "
                    "condition, scene, perturbation seed and method; failed ones are run again) and run the rest")
     p.add_argument("--list", action="store_true", help="print the conditions and exit")
-    p.add_argument("--docs", action="store_true", help=f"also write the tables to {DOCS_TABLE.relative_to(REPO)}, "
-                   "which the documentation's quality page includes")
+    p.add_argument("--docs", nargs="?", const=str(DOCS_TABLE), default=None, metavar="PATH",
+                   help=f"also write the tables to PATH (default {DOCS_TABLE.relative_to(REPO)}, which the "
+                   "documentation's quality page includes)")
     p.add_argument("--docs-from", metavar="OUT", default=None, help="write OUT/table.md of a finished run to "
-                   f"{DOCS_TABLE.relative_to(REPO)} and exit (evaluates nothing)")
+                   "the --docs path and exit (evaluates nothing)")
     return p.parse_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     if args.docs_from:
-        print(f"wrote {write_docs_table((Path(args.docs_from) / 'table.md').read_text())}")
+        target = Path(args.docs) if args.docs else DOCS_TABLE
+        print(f"wrote {write_docs_table((Path(args.docs_from) / 'table.md').read_text(), target)}")
         return 0
     n_scenes = args.scenes if args.scenes is not None else (3 if args.quick else 30)
     repeats = args.real_repeats if args.real_repeats is not None else (2 if args.quick else 5)
@@ -720,7 +722,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"on {args.workers} idle cores), generation {t_generated - t_start:.0f} s\n\n")
     (out / "table.md").write_text(header + table)
     if args.docs:
-        print(f"wrote {write_docs_table(header + table)}")
+        print(f"wrote {write_docs_table(header + table, Path(args.docs))}")
     print()
     print(header + table)
     print(f"wrote {out / 'records.jsonl'}, {out / 'summary.json'}, {out / 'table.md'}")
