@@ -516,11 +516,33 @@ def format_cell(stats: dict[str, Any] | None, key: str, fmt: str) -> str:
     return text
 
 
+def level_table(summary: dict[str, dict[str, dict[str, Any]]], rows: list[Condition], methods: list[str]
+                ) -> list[str]:
+    """Markdown: per error level (clean, then each combined level) and method, the average purity's
+    lowest and highest over the rigs and its mean over them (rigs of the level that ran)."""
+    levels = [None, *COMBINED]
+    out = []
+    for level in levels:
+        chosen = [c for c in rows if c.perturbation == level]
+        if not chosen:
+            continue
+        cells = []
+        for m in methods:
+            values = [summary[c.name][m]["average_purity"]["mean"] for c in chosen
+                      if m in summary[c.name] and "average_purity" in summary[c.name][m]]
+            cells.append(f"{min(values):.2f}–{max(values):.2f} ({np.mean(values):.2f})" if values else "–")
+        out.append(f"| {level or 'clean'} | {len(chosen)} | " + " | ".join(cells) + " |")
+    if not out:
+        return []
+    return (["### average purity by error level: lowest–highest over the rigs (mean over them)", "",
+             "| errors | rigs | " + " | ".join(methods) + " |", "|---|---|" + "---|" * len(methods)] + out + [""])
+
+
 def render_tables(summary: dict[str, dict[str, dict[str, Any]]], conditions: list[Condition],
                   methods: list[str]) -> str:
     """Markdown: one table per metric, rows = conditions, columns = methods, plus the support-flag table."""
     rows = [c for c in conditions if c.name in summary]
-    lines: list[str] = []
+    lines: list[str] = level_table(summary, rows, methods)
     for key, title, fmt in METRICS:
         lines += [f"### {title}", "", "| condition | scenes | " + " | ".join(methods) + " |",
                   "|---|---|" + "---|" * len(methods)]

@@ -62,7 +62,7 @@ def test_tables_agree_with_records(run, capsys):
         assert 0 <= r["average_purity"] <= 100 and r["time_ms"] > 0 and r["cpu_ms"] > 0
         assert r["average_purity"] == pytest.approx((r["rock_purity"] + r["cluster_purity"]) / 2)
 
-    avg_table = table.split("### average purity")[1].split("###")[0]
+    avg_table = table.split("### average purity (%)")[1].split("###")[0]
     for cond in summary["conditions"]:
         row = re.search(rf"^\| {re.escape(cond)} \| (\d+) \| (.*) \|$", avg_table, re.M)
         assert row, cond
@@ -83,6 +83,16 @@ def test_tables_agree_with_records(run, capsys):
             hit = sum(r["flagged_wrong"] for r in records if r["condition"] == cond and r["method"] == method)
             expected = 100.0 * hit / flagged if flagged else math.nan
             assert stats["flag_precision"] == pytest.approx(expected, nan_ok=True)
+
+    # per error level: the lowest and highest rig and the mean over the rigs, from the same cells
+    level_table = table.split("### average purity by error level")[1].split("###")[0]
+    for level in ("clean", "mild"):
+        chosen = [c for c in summary["conditions"] if (c.partition("+")[2] or "clean") == level]
+        row = re.search(rf"^\| {level} \| (\d+) \| (.*) \|$", level_table, re.M)
+        assert row and int(row.group(1)) == len(chosen), level
+        for method, cell in zip(methods, (c.strip() for c in row.group(2).split("|"))):
+            means = [summary["cells"][c][method]["average_purity"]["mean"] for c in chosen]
+            assert cell == f"{min(means):.2f}–{max(means):.2f} ({np.mean(means):.2f})"
 
     # the combined row's loss against the clean row (its parts did not run: no sum beside it)
     row = re.search(r"^\| syn:4v\+mild \| (.*) \|$", table.split("### combined errors")[1], re.M)
