@@ -12,6 +12,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from .poses import UpAxis
+
 #: Torch devices the network may be placed on (every other stage runs on the CPU).
 DEVICE_PATTERN = r"^(cpu|cuda(:\d+)?|mps)$"
 
@@ -189,7 +191,7 @@ class ShadowCorrConfig(BaseModel):
     )
 
     # each object's geometry (see shadowcorr.stages, stages 05 occupancy and 11 geometry)
-    up_axis: Literal["auto", "x", "y", "z", "-x", "-y", "-z"] = Field(
+    up_axis: UpAxis = Field(
         "auto", description="the world axis pointing up (against gravity) in the bundle's frame, about which oriented "
         "boxes turn; auto: the axis nearest to the cameras' mean up (z for REP 103 worlds, Unreal scenes and the "
         "synthetic generator)")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import numpy as np
 
 
@@ -61,7 +63,8 @@ def slerp(q0, q1, t: float) -> np.ndarray:
 
 
 #: World axis names an "up" may be given as ("auto": the one nearest to the cameras' up).
-UP_AXES = ("auto", "x", "y", "z", "-x", "-y", "-z")
+UpAxis = Literal["auto", "x", "y", "z", "-x", "-y", "-z"]
+UP_AXES: tuple[str, ...] = get_args(UpAxis)
 
 
 def world_up(poses: np.ndarray | None, up_axis: str = "auto") -> tuple[int, float]:

@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from ..poses import UP_AXES
+
 
 def cmd_render(args: argparse.Namespace) -> int:
     """Load the bundle and the result, render, and list the files written."""
@@ -47,7 +49,7 @@ def add_render_parser(subparsers: argparse._SubParsersAction) -> argparse.Argume
     p.add_argument("--low-support", type=float, default=0.6, help="outline segments with support below this (0-1)")
     p.add_argument("--alpha", type=float, default=0.5, help="opacity of the segment fills (0-1)")
     p.add_argument("--map-size", type=int, default=1000, help="map pixels across the scene's larger horizontal extent")
-    p.add_argument("--up-axis", choices=["auto", "x", "y", "z", "-x", "-y", "-z"], default="auto",
+    p.add_argument("--up-axis", choices=UP_AXES, default="auto",
                    help="world axis pointing up for the maps (auto: nearest to the cameras' up)")
     p.add_argument("--no-split-components", action="store_true", help="as given to `correspond`")
     p.add_argument("--min-blob-pixels", type=int, help="as given to `correspond` (default 50)")

@@ -24,17 +24,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from PIL import Image, ImageDraw
 
-from ..poses import world_up
+from ..poses import UpAxis, world_up
 from ._draw import Label, draw_arrow, draw_labels, font, text_size, wrap
 from ._raster import rasterise
 from .palette import CAMERA, RGB, object_colour, object_colours
 
-UpAxis = Literal["auto", "x", "y", "z", "-x", "-y", "-z"]
 AXIS_NAMES = ("x", "y", "z")
 BACKGROUND: RGB = (255, 255, 255)
 GRID: RGB = (228, 228, 228)
