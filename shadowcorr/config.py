@@ -8,11 +8,13 @@ by hand for metre or millimetre data.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from .poses import UpAxis
+#: World axis names an "up" may be given as ("auto": the one nearest to the cameras' up).
+UpAxis = Literal["auto", "x", "y", "z", "-x", "-y", "-z"]
+UP_AXES: tuple[str, ...] = get_args(UpAxis)
 
 #: Torch devices the network may be placed on (every other stage runs on the CPU).
 DEVICE_PATTERN = r"^(cpu|cuda(:\d+)?|mps)$"

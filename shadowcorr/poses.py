@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Literal, get_args
-
 import numpy as np
+
+from .config import UP_AXES  # the names live with the setting (config imports no numpy)
 
 
 def look_at_pose(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -61,10 +61,6 @@ def slerp(q0, q1, t: float) -> np.ndarray:
     theta = np.arccos(min(dot, 1.0))
     return (np.sin((1 - t) * theta) * a + np.sin(t * theta) * b) / np.sin(theta)
 
-
-#: World axis names an "up" may be given as ("auto": the one nearest to the cameras' up).
-UpAxis = Literal["auto", "x", "y", "z", "-x", "-y", "-z"]
-UP_AXES: tuple[str, ...] = get_args(UpAxis)
 
 
 def world_up(poses: np.ndarray | None, up_axis: str = "auto") -> tuple[int, float]:

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ..poses import UP_AXES
+from ..config import UP_AXES
 
 
 def cmd_render(args: argparse.Namespace) -> int:

@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image, ImageDraw
 
-from ..poses import UpAxis, world_up
+from ..config import UpAxis
+from ..poses import world_up
 from ._draw import Label, draw_arrow, draw_labels, font, text_size, wrap
 from ._raster import rasterise
 from .palette import CAMERA, RGB, object_colour, object_colours
