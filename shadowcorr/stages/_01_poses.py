@@ -324,13 +324,15 @@ def _matches(source: _Cloud, target: _Cloud, transform: np.ndarray, match: float
         row = np.rint(fy * local[1] * inv_z + cy)
     index = np.flatnonzero((local[2] > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
     flat = (row[index] * w + col[index]).astype(np.int64)
-    matched, normals = target.grid[:, flat], target.normal_grid[:, flat]
-    moved = rot @ source.points[:, index] + shift[:, None]
+    # np.take along an axis gathers several times faster than fancy indexing (this runs in every
+    # Gauss-Newton step), with the same values.
+    matched, normals = np.take(target.grid, flat, axis=1), np.take(target.normal_grid, flat, axis=1)
+    moved = rot @ np.take(source.points, index, axis=1) + shift[:, None]
     gap = moved - matched
     with np.errstate(invalid="ignore"):
-        keep = (np.einsum("ij,ij->j", gap, gap) <= match * match) \
-            & (np.einsum("ij,ij->j", rot @ source.normals[:, index], normals) > 0.5)
-    return moved[:, keep], matched[:, keep], normals[:, keep]
+        keep = np.flatnonzero((np.einsum("ij,ij->j", gap, gap) <= match * match)
+                              & (np.einsum("ij,ij->j", rot @ np.take(source.normals, index, axis=1), normals) > 0.5))
+    return np.take(moved, keep, axis=1), np.take(matched, keep, axis=1), np.take(normals, keep, axis=1)
 
 
 def _point_to_plane(source: _Cloud, target: _Cloud, transform: np.ndarray, match: float, stop: float
