@@ -173,7 +173,7 @@ def _view_grid(view: View, max_depth_bundle: float) -> tuple[np.ndarray, np.ndar
     stride = max(1, int(round(np.sqrt(height * width / _SAMPLED_PIXELS))))
     rows = np.arange(stride // 2, height, stride)
     cols = np.arange(stride // 2, width, stride)
-    depth = view.depth[np.ix_(rows, cols)].astype(np.float64)
+    depth = view.depth[stride // 2::stride, stride // 2::stride].astype(np.float64)  # = rows x cols, a strided view
     depth[~(np.isfinite(depth) & (depth > 0) & (depth <= max_depth_bundle))] = np.nan
     vv = np.broadcast_to(rows[:, None].astype(np.float64), depth.shape)
     uu = np.broadcast_to(cols[None, :].astype(np.float64), depth.shape)
@@ -251,7 +251,7 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     order = np.r_[index[::2, ::2][moving[::2, ::2]], index[rest]]
     if order.size < 4 * _COVARIANCE_NEIGHBOURS:
         return None
-    points, moving_normals = grid.reshape(3, -1)[:, order], normals.reshape(3, -1)[:, order]
+    points, moving_normals = np.take(grid.reshape(3, -1), order, axis=1), np.take(normals.reshape(3, -1), order, axis=1)
     # small_gicp's voxel grid holds 2^20 cells either side of the origin (the scene's centre
     # here) and prints a warning per point beyond; points that far from the scene's centre
     # cannot overlap another view, so they are left out of the coarse cloud.
@@ -266,7 +266,8 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     # Grid index of a pixel: (pixel - first) / stride, so fold that into the intrinsics.
     projection = np.array([k.fx / stride, k.fy / stride, (k.cx - cols[0]) / stride, (k.cy - rows[0]) / stride])
     reach = float(np.median(np.sqrt(np.einsum("ij,ij->j", points - camera[:, None], points - camera[:, None]))))
-    foreground = (view.mask[np.ix_(rows, cols)] > 0).ravel() if view.mask is not None else np.zeros(depth.size, bool)
+    foreground = ((view.mask[rows[0]::stride, cols[0]::stride] > 0).ravel() if view.mask is not None
+                  else np.zeros(depth.size, bool))
     return _Cloud(grid.reshape(3, -1), normals.reshape(3, -1), depth.shape, points, moving_normals,
                   order.size - int(rest.sum()), view.pose[:3, :3].copy(), camera[:, None], projection, coarse, coarse_tree,
                   reach, np.zeros(0, dtype=np.int64), (depth * scale).ravel(),
@@ -555,8 +556,8 @@ def _mask_agreement(clouds: list[_Cloud | None], pairs: list[tuple[int, int]], r
         for source, target, s, t in ((clouds[a], clouds[b], a, b), (clouds[b], clouds[a], b, a)):
             h, w = source.shape
             take = (np.arange(h)[:, None] % 2 == 0) & (np.arange(w)[None, :] % 2 == 0)
-            take = take.ravel() & np.isfinite(source.grid[0])
-            points = rotations[s] @ source.grid[:, take] + translations[s][:, None]
+            take = np.flatnonzero(take.ravel() & np.isfinite(source.grid[0]))
+            points = rotations[s] @ np.take(source.grid, take, axis=1) + translations[s][:, None]
             # Into the corrected target camera: (R_t rot)^T (p - (R_t c + t_t)).
             to_camera = (rotations[t] @ target.rotation).T
             local = to_camera @ (points - (rotations[t] @ target.camera + translations[t][:, None]))
@@ -569,7 +570,7 @@ def _mask_agreement(clouds: list[_Cloud | None], pairs: list[tuple[int, int]], r
             flat = (row[inside] * target.shape[1] + col[inside]).astype(np.int64)
             with np.errstate(invalid="ignore"):
                 seen = np.abs(target.depth_grid[flat] - local[2, inside]) < _VISIBLE_DEPTH_SHARE * local[2, inside]
-            mine, theirs = source.foreground[take][inside][seen], target.foreground[flat][seen]
+            mine, theirs = source.foreground[take[inside]][seen], target.foreground[flat][seen]
             both += int(np.count_nonzero(mine & theirs))
             one += int(np.count_nonzero(mine != theirs))
     return both, one
