@@ -1,11 +1,14 @@
 """How close each object's oriented box and volume come to the true rock, on synthetic scenes.
 
-Usage: python benchmarks/bench_geometry.py [--scenes 5] [--seed 0] [--cameras 4] [--method fused]
-                                           [--sample]
+Usage: python benchmarks/bench_geometry.py [--scenes 10] [--seed 0] [--cameras 4] [--method fused]
+                                           [--condition NAME] [--misses] [--sample]
 
-Every scene is generated (``shadowcorr.synth``, numpy rasteriser, exact images) and run
-through ``correspond``.  Each object is matched to the rock most of its points come from
-(mask ids are rock ids), and compared with that rock's mesh:
+Every scene is generated (``shadowcorr.synth``, numpy rasteriser, exact images), optionally
+perturbed (``--condition``: one of the quality benchmark's perturbations or combined error
+levels by name, e.g. ``mixed-edges`` or ``field``, with the quality benchmark's fixed seeds;
+``--list`` names them) and run through ``correspond``.  Each object is matched to the rock
+most of its points come from (the bundle's ground truth of each segment) and compared with
+that rock's mesh:
 
 * **box ratio**: the volume of the object's oriented box over the volume of the same
   construction on the rock's mesh vertices (a box turned about z along the footprint's
@@ -16,8 +19,11 @@ through ``correspond``.  Each object is matched to the rock most of its points c
 
 It prints one row per scene and the distribution (min, 5 / 25 / 50 / 75 / 95 %, max) of
 each ratio, with the share of objects within 1.5x (box) and within +-30 % (volume).
-``--sample`` also prints the sample scene's objects (no meshes there: boxes, volumes and
-the volume / box ratio, which for a rock lies well below 1).
+``--misses`` lists every object outside either tolerance with what may explain it: the
+rock's diameter and its mask pixels in each view, the share of the object's points that
+come from its rock (below 1: a merge), and how many objects share the rock (above 1: a
+split).  ``--sample`` also prints the sample scene's objects (no meshes there: boxes, volumes
+and the volume / box ratio, which for a rock lies well below 1).
 """
 
 from __future__ import annotations
@@ -34,6 +40,10 @@ from shadowcorr.synth import SynthConfig, scene_seed
 from shadowcorr.synth.generate import synthesize
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_quality  # noqa: E402  (the perturbation catalogue and its seeds)
+
+CONDITIONS = (*bench_quality.PERTURBATIONS, *bench_quality.COMBINED)
 
 
 def _quantiles(values: np.ndarray) -> str:
@@ -53,27 +63,52 @@ def true_boxes(scene) -> tuple[np.ndarray, np.ndarray]:
     return size.prod(axis=1), aligned
 
 
-def measure(seed: int, cameras: int, method: str) -> list[dict]:
+def scene_bundle(seed: int, cameras: int, condition: str | None):
+    """The generated scene and its bundle, perturbed by ``condition`` (the quality benchmark's seed for it)."""
     scene = synthesize(SynthConfig(renderer="raster", cameras=cameras), seed)
-    result = correspond(scene.bundle, config=ShadowCorrConfig(method=method), metrics=False)
+    if condition is None:
+        return scene, scene.bundle
+    key = f"syn:{cameras}v/{seed}"
+    return scene, bench_quality.perturb(scene.bundle, condition, bench_quality.perturbation_seed(key, condition, 0))
+
+
+def compare(scene, bundle, result, seed: int) -> list[dict]:
+    """One row per object of ``result``: its box and volume against its rock's mesh."""
     box_true, box_aligned = true_boxes(scene)
     mesh_volume = np.array([r["volume"] for r in scene.truth["rocks"]])
+    truth = bench_quality.segment_truth(bundle, result)  # rock id (1-based) of every segment, -1 none
+    points = np.array([s.num_points for s in result.segments], dtype=np.float64)
+    objects_of_rock: dict[int, set[int]] = {}
+    for s, seg in enumerate(result.segments):
+        if seg.object >= 0 and truth[s] > 0:
+            objects_of_rock.setdefault(int(truth[s]), set()).add(seg.object)
     rows = []
     for obj in result.objects:
-        weights: dict[int, int] = {}
-        for s in obj.segments:
-            seg = result.segments[s]
-            weights[seg.instance] = weights.get(seg.instance, 0) + seg.num_points
-        rock = max(weights, key=weights.get) - 1  # mask id k is rock k (1-based)
+        segs = np.asarray(obj.segments, dtype=np.int64)
+        ids = truth[segs]
+        weights = np.bincount(np.maximum(ids, 0), weights=points[segs])
+        weights[0] = 0.0  # segments without a rock
+        if weights.sum() == 0:
+            continue  # an object of spurious segments only: no rock to compare with
+        rock = int(np.argmax(weights)) - 1
         box = obj.oriented_box
+        pixels = scene.truth["rocks"][rock]["pixels"]
         rows.append({
             "scene": seed, "object": obj.object, "rock": rock + 1, "views": obj.num_views,
+            "diameter": scene.truth["rocks"][rock]["diameter"], "pixels": pixels,
+            "purity": float(weights.max() / weights.sum()), "objects": len(objects_of_rock.get(rock + 1, ())),
             "box_ratio": np.prod(box.size) / box_true[rock] if box else np.nan,
             "aligned_ratio": np.prod(box.size) / box_aligned[rock] if box else np.nan,
             "volume_ratio": obj.volume / mesh_volume[rock] if obj.volume is not None else np.nan,
             "volume_z": (obj.volume - mesh_volume[rock]) / obj.volume_std if obj.volume_std else np.nan,
         })
     return rows
+
+
+def measure(seed: int, cameras: int, method: str, condition: str | None = None) -> list[dict]:
+    scene, bundle = scene_bundle(seed, cameras, condition)
+    result = correspond(bundle, config=ShadowCorrConfig(method=method), metrics=False)
+    return compare(scene, bundle, result, seed)
 
 
 def sample(method: str) -> None:
@@ -90,22 +125,46 @@ def sample(method: str) -> None:
         print(f"| {o.object} | {o.num_views} | {o.num_points} | {size} | {o.volume} | {o.volume_std} | {ratio:.2f} |")
 
 
+def misses(rows: list[dict], min_views: int) -> None:
+    """Every object outside a tolerance, with the facts that may explain it."""
+    print("\n| scene | rock | diameter | mask pixels per view | views | purity | objects of the rock | box ratio "
+          "| volume ratio |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        box_off = not (np.isfinite(r["box_ratio"]) and 1 / 1.5 <= r["box_ratio"] <= 1.5)
+        vol_off = r["views"] >= min_views and not (np.isfinite(r["volume_ratio"]) and abs(r["volume_ratio"] - 1) <= 0.3)
+        if box_off or vol_off:
+            pixels = ",".join(str(p) for p in r["pixels"].values()) or "0"
+            print(f"| {r['scene']} | {r['rock']} | {r['diameter']:.0f} | {pixels} | {r['views']} | {r['purity']:.2f} "
+                  f"| {r['objects']} | {r['box_ratio']:.2f}{' *' if box_off else ''} "
+                  f"| {r['volume_ratio']:.2f}{' *' if vol_off else ''} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cameras", type=int, default=4)
     parser.add_argument("--method", default="fused", choices=["fused", "shadowcorr", "meanshift"])
+    parser.add_argument("--condition", default=None, choices=CONDITIONS, metavar="NAME",
+                        help="a perturbation or combined error level of benchmarks/bench_quality.py (--list)")
+    parser.add_argument("--list", action="store_true", help="name the conditions and exit")
     parser.add_argument("--min-views", type=int, default=3)
+    parser.add_argument("--misses", action="store_true", help="list the objects outside either tolerance")
     parser.add_argument("--sample", action="store_true", help="also list the sample scene's objects")
     args = parser.parse_args()
+    if args.list:
+        for name in CONDITIONS:
+            entry = bench_quality.PERTURBATIONS.get(name) or bench_quality.COMBINED[name]
+            print(f"{name:<16} {entry[0]}")
+        return
 
     rows = []
     print("| scene seed | objects | box ratio median | volume ratio median (>= %d views) |" % args.min_views)
     print("|---|---|---|---|")
     for i in range(args.scenes):
         seed = scene_seed(args.seed, i)
-        scene_rows = measure(seed, args.cameras, args.method)
+        scene_rows = measure(seed, args.cameras, args.method, args.condition)
         rows += scene_rows
         box = np.array([r["box_ratio"] for r in scene_rows])
         vol = np.array([r["volume_ratio"] for r in scene_rows if r["views"] >= args.min_views])
@@ -116,8 +175,8 @@ def main() -> None:
     seen = [r for r in rows if r["views"] >= args.min_views]
     vol = np.array([r["volume_ratio"] for r in seen])
     z = np.array([r["volume_z"] for r in seen])
-    print(f"\n{len(rows)} objects in {args.scenes} scenes ({args.cameras} cameras, method {args.method}); "
-          f"{len(seen)} seen from >= {args.min_views} views")
+    print(f"\n{len(rows)} objects in {args.scenes} scenes ({args.cameras} cameras, method {args.method}, "
+          f"{args.condition or 'clean'}); {len(seen)} seen from >= {args.min_views} views")
     print("distribution: min / 5 % / 25 % / median / 75 % / 95 % / max")
     print(f"box volume / true oriented box     {_quantiles(box[np.isfinite(box)])}")
     print(f"box volume / true axis-aligned box {_quantiles(aligned[np.isfinite(aligned)])}")
@@ -130,9 +189,8 @@ def main() -> None:
           f"without a volume: {int((~np.isfinite(vol)).sum())})")
     zf = np.abs(z[np.isfinite(z)])
     print(f"|volume - mesh volume| within 1 / 2 volume_std: {np.mean(zf <= 1):.1%} / {np.mean(zf <= 2):.1%}")
-    worst = sorted(seen, key=lambda r: -abs(np.log(r["volume_ratio"])) if np.isfinite(r["volume_ratio"]) else 0)[:5]
-    print("largest volume errors: " + "; ".join(
-        f"scene {r['scene']} rock {r['rock']} ({r['views']} views) x{r['volume_ratio']:.2f}" for r in worst))
+    if args.misses:
+        misses(rows, args.min_views)
     if args.sample:
         sample(args.method)
 

@@ -67,16 +67,17 @@ class ObjectSummary(BaseModel):
     num_voxels: int
     confidence: float | None = Field(None, description="mean support of its segments (0-1)")
     oriented_box: OrientedBox | None = Field(
-        None, description="box around its fused surface points and half-solid voxels, turned about the up axis "
-        "(see OrientedBox); none without points")
+        None, description="box around the solid samples of its largest connected set of voxels and the fused "
+        "surface points near them, turned about the up axis (see OrientedBox); none without points")
     volume: float | None = Field(
         None, description="bundle units^3: the solid part of the shadow voxels it owns, which no view sees through "
-        "or sees the background in front of (shadowcorr.stages, stage 05 occupancy); none under 'projection', for "
-        "bundles without depth images, and when none of its voxels is solid")
+        "or sees the background in front of, plus half the part only one view's background rules out "
+        "(shadowcorr.stages, stage 05 occupancy); none under 'projection', for bundles without depth images, and "
+        "when none of its voxels is solid")
     volume_std: float | None = Field(
         None, description="uncertainty of `volume` (bundle units^3): half the volume only one view's background rules "
-        "out, and the sampling of the voxels, added in quadrature")
-    extent: Extent | None = Field(None, description="axis-aligned bounds of its fused surface points")
+        "out, the sampling of the voxels and volume_relative_std of the volume, added in quadrature")
+    extent: Extent | None = Field(None, description="axis-aligned bounds of the fused surface points its box spans")
     num_views: int = Field(0, description="views whose points it holds")
     num_points: int = Field(0, description="fused surface points: the segments' cleaned points averaged per "
                             "downsample cell of the object, so that overlapping views count once")

@@ -2,31 +2,40 @@
 
 Once every segment has its object (stage 10), an object is described in 3D:
 
-* **Fused points** (:func:`fuse_object_points`): the cleaned shell points (stage 04) of all
-  its segments, averaged per ``downsample_size`` cell *of the object*, so that a surface
-  two views both saw counts once, then statistical outlier removal per object (as stage
-  04 does per segment: mixed pixels at depth edges would otherwise stretch the box).
+* **Fused points** (:func:`fuse_object_points`): the shell points (stage 04) of all its
+  segments, averaged per ``downsample_size`` cell *of the object*, so that a surface two
+  views both saw counts once.
+* **Solid samples**: the sub-cell samples (stage 05 occupancy) that no view rules out, of
+  the voxels the object owns - a voxel belongs to the object of the segment whose shadow
+  gives it the most confidence - kept only in the object's largest 26-connected set of
+  such voxels (by solid volume): stray solid voxels that a mixed depth pixel's shadow or a
+  neighbour's leave behind elsewhere would otherwise stretch the box.
 * **Oriented box** (:func:`oriented_boxes`): turned about the world's up axis
   (``ShadowCorrConfig.up_axis``), with its first axis along the principal axis of the
   footprint on the ground plane (the eigenvector of the larger eigenvalue of the
-  horizontal 2x2 covariance; the longer side is named first), its second axis horizontal
-  and orthogonal to it, its third axis up.  It spans, along each axis, the fused points and
-  the centres of the object's voxels that are at least half solid (those reach down where
-  the views saw no surface, towards the rock's foot).  A rock rests on the ground, so a
-  gravity-aligned box is what a planner grasps or drives around; the footprint's principal
-  axes make it tight for elongated rocks.
-* **Volume** (:func:`object_volumes`): the solid share (stage 05 occupancy) of the shadow
-  voxels the object owns - a voxel belongs to the object of the segment whose shadow gives
-  it the most confidence - times the voxel volume.  ``volume_std`` adds, in quadrature,
-  half the volume that only one view's background rules out (evidence a missed mask in one
-  view would fake), the binomial sampling error of the sub-voxel samples, and
+  horizontal 2x2 covariance of the solid samples, or of the fused points for an object
+  without any; the longer side is named first), its second axis horizontal and orthogonal
+  to it, its third axis up.  It spans the solid samples (each the centre of a sub-cell,
+  padded by half a sub-cell) and the fused points that lie within one sub-cell of one of
+  the object's solid samples.  Points farther out are seen by no other view where they
+  are: mixed ("flying") depth pixels at the rock's outline, which float between the rock
+  and what lies behind it.  A rock rests on the ground, so a gravity-aligned box is what
+  a planner grasps or drives around; the footprint's principal axes make it tight for
+  elongated rocks.
+* **Volume** (:func:`object_volumes`): the solid share of the voxels the object owns,
+  plus half the share that only one view's background rules out, times the voxel volume.
+  ``volume_std`` adds, in quadrature, that half (evidence a missed or eroded mask in one
+  view would fake, so the volume spans both readings within one standard deviation), the
+  binomial sampling error of the sub-voxel samples, and
   ``volume_relative_std`` of the volume: the spread of the volume against the true mesh
   volume on synthetic scenes, which the data of one scene cannot show (parts no view saw).
-* **Extent**: the axis-aligned bounds of the fused points, i.e. of the surface the views
-  saw (the voxel box of stage 10 reaches into the shadows, behind that surface).
+* **Extent**: the axis-aligned bounds of the fused points the box spans, i.e. of the
+  surface the views saw (the voxel box of stage 10 reaches into the shadows, behind that
+  surface).
 
 Everything is computed for all objects at once with per-object reductions over
-object-sorted arrays (``bincount``, ``reduceat``); nothing reads ground truth.
+object-sorted arrays (``bincount``, ``reduceat``) and sorted integer keys (connected
+voxels, the points' neighbouring samples); nothing reads ground truth.
 """
 
 from __future__ import annotations
@@ -34,13 +43,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
 from ..config import ShadowCorrConfig
-from ..ops import resolve_threads, segment_max, segment_min, segment_starts
+from ..ops import segment_max, segment_min, segment_starts
 from ..poses import world_up
 from ..result import Extent, ObjectSummary, OrientedBox
-from ._04_shells import remove_statistical_outliers, voxel_downsample
+from ._04_shells import voxel_downsample
 from ._05_occupancy import ShadowOccupancy
 
 
@@ -93,40 +104,73 @@ def fuse_object_points(points: np.ndarray, point_segment: np.ndarray, seg_object
     """
     obj = seg_object[point_segment] if point_segment.size else np.zeros(0, np.int64)
     labelled = obj >= 0
-    fused, fused_obj = voxel_downsample(points[labelled], obj[labelled].astype(np.int64), config.downsample_size)
-    keep = remove_statistical_outliers(fused, fused_obj, num_objects, config, resolve_threads(config.num_threads))
-    return ObjectPoints(fused[keep] / unit_scale, fused_obj[keep], num_objects, units)
+    if not labelled.all():
+        points, obj = points[labelled], obj[labelled]
+    fused, fused_obj = voxel_downsample(points, obj.astype(np.int64, copy=False), config.downsample_size)
+    return ObjectPoints(fused / unit_scale, fused_obj, num_objects, units)
 
 
-def oriented_boxes(points: np.ndarray, obj: np.ndarray, num_objects: int,
-                   up: tuple[int, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Boxes around each object's points (sorted by object), turned about the world axis ``up`` = (index, sign).
+@dataclass
+class _UpFrame:
+    """Two horizontal axes and the up axis of the world, (h1, h2, up) right-handed."""
 
-    Returns centres (K, 3), sizes (K, 3) [long, short, vertical] and rotation matrices (K, 3, 3)
-    whose columns are the box axes in the world; NaN for objects without points.
-    """
-    k = num_objects
-    axis, sign = up
-    u = np.zeros(3)
-    u[axis] = sign
-    h1 = np.zeros(3)
-    h1[(axis + 1) % 3] = 1.0
-    h2 = np.cross(u, h1)  # (h1, h2, u) is right-handed
-    count = np.bincount(obj, minlength=k).astype(np.float64)
-    safe = np.maximum(count, 1.0)
-    x, y = points @ h1, points @ h2
+    axis: int
+    u: np.ndarray
+    h1: np.ndarray
+    h2: np.ndarray
+
+    @classmethod
+    def of(cls, up: tuple[int, float]) -> "_UpFrame":
+        axis, sign = up
+        u = np.zeros(3)
+        u[axis] = sign
+        h1 = np.zeros(3)
+        h1[(axis + 1) % 3] = 1.0
+        return cls(axis, u, h1, np.cross(u, h1))
+
+    def horizontal(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Coordinates along h1 and h2 (each one world axis, up to sign)."""
+        i1, i2 = int(np.argmax(np.abs(self.h1))), int(np.argmax(np.abs(self.h2)))
+        return points[:, i1] * self.h1[i1], points[:, i2] * self.h2[i2]
+
+
+def _footprint_angle(points: np.ndarray, obj: np.ndarray, k: int, frame: _UpFrame) -> np.ndarray:
+    """Per object: the angle from h1 of the footprint's principal axis (the horizontal covariance's
+    eigenvector of the larger eigenvalue); 0 for objects without points."""
+    safe = np.maximum(np.bincount(obj, minlength=k), 1).astype(np.float64)
+    x, y = frame.horizontal(points)
     mx, my = np.bincount(obj, weights=x, minlength=k) / safe, np.bincount(obj, weights=y, minlength=k) / safe
     dx, dy = x - mx[obj], y - my[obj]
     cxx = np.bincount(obj, weights=dx * dx, minlength=k)
     cxy = np.bincount(obj, weights=dx * dy, minlength=k)
     cyy = np.bincount(obj, weights=dy * dy, minlength=k)
-    angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)  # direction of the larger eigenvalue's eigenvector
-    major = np.cos(angle)[:, None] * h1 + np.sin(angle)[:, None] * h2
-    minor = np.cross(u, major)  # major x minor = up: a proper rotation
-    rotation = np.stack([major, minor, np.broadcast_to(u, major.shape)], axis=2)  # columns: box axes
-    local = np.einsum("nij,ni->nj", rotation[obj], points)  # coordinates along the object's box axes
-    lo = segment_min(local, obj, k, empty=np.nan)
-    hi = segment_max(local, obj, k, empty=np.nan)
+    return 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
+
+
+def _local(points: np.ndarray, obj: np.ndarray, cos: np.ndarray, sin: np.ndarray, frame: _UpFrame) -> np.ndarray:
+    """Coordinates of each point along its object's box axes (major, minor = up x major, up)."""
+    x, y = frame.horizontal(points)
+    c, s = cos[obj], sin[obj]
+    return np.stack([x * c + y * s, y * c - x * s, points[:, frame.axis] * frame.u[frame.axis]], axis=1)
+
+
+def _quaternions(angle: np.ndarray, frame: _UpFrame) -> np.ndarray:
+    """[x, y, z, w] of the turns by ``angle`` about ``frame``'s up axis from the frame (h1, h2, up): the frame's
+    quaternion times the turn's, (v, w) * (0, 0, s, c) = (c v + s (v x e3) + s w e3, c w - s v3)."""
+    v = Rotation.from_matrix(np.stack([frame.h1, frame.h2, frame.u], axis=1)).as_quat()
+    s, c = np.sin(angle / 2.0), np.cos(angle / 2.0)
+    quaternion = np.stack([c * v[0] + s * v[1], c * v[1] - s * v[0], c * v[2] + s * v[3], c * v[3] - s * v[2]], axis=1)
+    quaternion[quaternion[:, 3] < 0] *= -1.0  # one of the two: w >= 0
+    return quaternion
+
+
+def _boxes(lo: np.ndarray, hi: np.ndarray, angle: np.ndarray,
+           frame: _UpFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centres, sizes [long, short, vertical] and rotations (columns: box axes) of boxes spanning
+    ``lo``..``hi`` along the axes at ``angle``; the longer footprint side is named first."""
+    major = np.cos(angle)[:, None] * frame.h1 + np.sin(angle)[:, None] * frame.h2
+    minor = np.cross(frame.u, major)  # major x minor = up: a proper rotation
+    rotation = np.stack([major, minor, np.broadcast_to(frame.u, major.shape)], axis=2)
     size = hi - lo
     # Name the longer footprint axis first where the covariance's order disagrees with the extents:
     # a quarter turn about up, (x, y) -> (y, -x).
@@ -141,6 +185,145 @@ def oriented_boxes(points: np.ndarray, obj: np.ndarray, num_objects: int,
     return center, size, rotation
 
 
+def oriented_boxes(points: np.ndarray, obj: np.ndarray, num_objects: int,
+                   up: tuple[int, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Boxes around each object's points (sorted by object), turned about the world axis ``up`` = (index, sign).
+
+    Returns centres (K, 3), sizes (K, 3) [long, short, vertical] and rotation matrices (K, 3, 3)
+    whose columns are the box axes in the world; NaN for objects without points.
+    """
+    frame = _UpFrame.of(up)
+    angle = _footprint_angle(points, obj, num_objects, frame)
+    local = _local(points, obj, np.cos(angle), np.sin(angle), frame)
+    lo = segment_min(local, obj, num_objects, empty=np.nan)
+    hi = segment_max(local, obj, num_objects, empty=np.nan)
+    return _boxes(lo, hi, angle, frame)
+
+
+@dataclass
+class SolidSamples:
+    """Each object's solid sub-cell samples in its largest connected set of voxels, sorted by object."""
+
+    points: np.ndarray  # (M, 3) sample centres, bundle units
+    object: np.ndarray  # (M,) int64, ascending
+    cell: np.ndarray  # (M, 3) int64 voxel of each sample
+    sub: np.ndarray  # (M, 3) int64 sub-cell of each sample within its voxel, 0 .. subdivisions - 1
+    spacing: float  # sub-cell edge, bundle units
+    subdivisions: int
+
+    @property
+    def lattice(self) -> np.ndarray:
+        """(M, 3) the sub-cell grid index of each sample: floor(position / spacing + subdivisions / 2)."""
+        return self.cell * self.subdivisions + self.sub
+
+
+def solid_samples(occupancy: ShadowOccupancy | None, seg_object: np.ndarray, voxel_size: float,
+                  unit_scale: float) -> SolidSamples | None:
+    """The solid samples of every object's largest 26-connected set of owned voxels (by solid share).
+
+    None without an occupancy (no shadows or no depth images).
+    """
+    if occupancy is None or occupancy.cell.shape[0] == 0 or occupancy.solid_samples is None:
+        return None
+    owner = seg_object[occupancy.segment]
+    kept = _largest_components(occupancy.cell, np.where(occupancy.solid > 0, owner, -1), occupancy.solid)
+    cells = np.flatnonzero(kept)
+    cells = cells[np.argsort(owner[cells], kind="stable")]
+    cell_row, sample = np.nonzero(occupancy.solid_samples[cells])
+    cell = occupancy.cell[cells][cell_row]
+    n = round(occupancy.samples ** (1.0 / 3.0))
+    sub = np.rint((occupancy.offsets + 0.5) * n - 0.5).astype(np.int64)  # sub-cell of each sample in its voxel
+    points = (cell + occupancy.offsets[sample]) * (voxel_size / unit_scale)
+    return SolidSamples(points, owner[cells][cell_row], cell, sub[sample], voxel_size / unit_scale / n, n)
+
+
+def _largest_components(cell: np.ndarray, owner: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Per cell: whether it lies in its owner's largest (by ``weight``) 26-connected set of cells of that
+    owner; False for cells without an owner (< 0)."""
+    kept = np.zeros(cell.shape[0], dtype=bool)
+    idx = np.flatnonzero(owner >= 0)
+    if idx.size == 0:
+        return kept
+    key, steps = _linear_keys(owner[idx], cell[idx], margin=1)
+    order = np.argsort(key)
+    sorted_key = key[order]
+    rows, cols = [], []
+    for dx, dy, dz in _HALF_NEIGHBOURS:  # each undirected edge once
+        target = key + (dx * steps[0] + dy * steps[1] + dz * steps[2])
+        j = np.minimum(np.searchsorted(sorted_key, target), idx.size - 1)
+        hit = sorted_key[j] == target
+        rows.append(np.flatnonzero(hit))
+        cols.append(order[j[hit]])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(r.size, dtype=np.int8), (r, c)), shape=(idx.size, idx.size))
+    _, component = connected_components(graph, directed=False)
+    mass = np.bincount(component, weights=weight[idx])
+    component_owner = np.zeros(mass.size, dtype=np.int64)
+    component_owner[component] = owner[idx]
+    # per owner the heaviest component: components sorted by owner, then by falling mass (one argsort of
+    # owner + a fraction below one half that falls as the mass rises)
+    ranked = np.argsort(component_owner - mass / (2.0 * max(float(mass.max()), 1e-300)))
+    first = ranked[np.r_[True, component_owner[ranked][1:] != component_owner[ranked][:-1]]]
+    best = np.zeros(mass.size, dtype=bool)
+    best[first] = True
+    kept[idx] = best[component]
+    return kept
+
+
+#: The 13 neighbour offsets of a 26-neighbourhood that come after (0, 0, 0) in lexicographic order.
+_HALF_NEIGHBOURS = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1) if (dx, dy, dz) > (0, 0, 0)]
+_NEIGHBOURS = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
+
+
+def _linear_keys(group: np.ndarray, cells: np.ndarray, margin: int,
+                 low: np.ndarray | None = None, high: np.ndarray | None = None) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """int64 keys of (group, cell) in which a step of one cell along an axis adds a fixed amount
+    (returned), for cells up to ``margin`` beyond ``low``..``high`` (default: the cells' bounds)."""
+    low = cells.min(axis=0) if low is None else low
+    high = cells.max(axis=0) if high is None else high
+    lo = low - margin
+    span = (high + margin) - lo + 1
+    if float(span.prod()) * (float(group.max(initial=0)) + 1.0) >= 2.0 ** 62:
+        raise ValueError("the objects' voxels span too large a grid for 64-bit keys")
+    steps = (int(span[1] * span[2]), int(span[2]), 1)
+    q = cells - lo
+    return group * int(span.prod()) + q[:, 0] * steps[0] + q[:, 1] * steps[1] + q[:, 2], steps
+
+
+def _near_samples(points: np.ndarray, obj: np.ndarray, samples: SolidSamples) -> np.ndarray:
+    """Per point: whether a solid sample of its object lies in its sub-cell or one of the 26 around it."""
+    near = np.zeros(points.shape[0], dtype=bool)
+    if points.shape[0] == 0 or samples.points.shape[0] == 0:
+        return near
+    q = np.floor(points / samples.spacing + samples.subdivisions / 2.0).astype(np.int64)
+    n = samples.subdivisions
+    low = np.array([samples.cell[:, i].min() for i in range(3)]) * n  # column by column: contiguous reductions
+    high = np.array([samples.cell[:, i].max() for i in range(3)]) * n + n - 1
+    within = np.flatnonzero(np.all((q >= low - 1) & (q <= high + 1), axis=1))
+    if within.size == 0:
+        return near
+    sample_key, steps = _linear_keys(samples.object, samples.lattice, 2, low, high)
+    sample_key = np.sort(sample_key)
+    key, _ = _linear_keys(obj[within], q[within], 2, low, high)  # neighbours stay on the grid
+    found = np.zeros(within.size, dtype=bool)
+    for dx, dy, dz in _NEIGHBOURS:
+        target = key + (dx * steps[0] + dy * steps[1] + dz * steps[2])
+        j = np.minimum(np.searchsorted(sample_key, target), sample_key.size - 1)
+        found |= sample_key[j] == target
+    near[within] = found
+    return near
+
+
+def _nan_segment_reduce(ufunc: np.ufunc, values: np.ndarray, segment: np.ndarray, k: int) -> np.ndarray:
+    """Per-segment ``np.fmin`` / ``np.fmax`` of rows sorted by segment, skipping NaN; NaN for empty segments."""
+    out = np.full((k,) + values.shape[1:], np.nan)
+    count = np.bincount(segment, minlength=k)
+    nonempty = count > 0
+    if values.shape[0]:
+        out[nonempty] = ufunc.reduceat(values, segment_starts(segment, k)[nonempty], axis=0)
+    return out
+
+
 def object_volumes(occupancy: ShadowOccupancy | None, seg_object: np.ndarray, num_objects: int, voxel_size: float,
                    unit_scale: float, relative_std: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Volume and its standard deviation per object (bundle units^3); NaN where none was measured."""
@@ -149,7 +332,8 @@ def object_volumes(occupancy: ShadowOccupancy | None, seg_object: np.ndarray, nu
         return np.full(k, np.nan), np.full(k, np.nan)
     obj = seg_object[occupancy.segment]
     owned = obj >= 0
-    obj, solid, single = obj[owned], occupancy.solid[owned], occupancy.single_view[owned]
+    obj, single = obj[owned], occupancy.single_view[owned]
+    solid = occupancy.solid[owned] + single / 2.0  # one view's background alone: half solid, half uncertain
     cell_volume = (voxel_size / unit_scale) ** 3
     volume = np.bincount(obj, weights=solid, minlength=k) * cell_volume
     one_view = np.bincount(obj, weights=single, minlength=k) * cell_volume
@@ -185,7 +369,7 @@ def with_geometry(objects: list[ObjectSummary], geometry: ObjectGeometry, suppor
             "volume": round(float(volume), 4) if np.isfinite(volume) else None,
             "volume_std": round(float(geometry.volume_std[i]), 4) if np.isfinite(volume) else None,
             "extent": Extent(min=rounded(geometry.extent_min[i]), max=rounded(geometry.extent_max[i]))
-            if box is not None else None,
+            if np.isfinite(geometry.extent_min[i]).all() else None,
             "num_views": int(geometry.num_views[i]),
             "num_points": int(geometry.num_points[i]),
         }))
@@ -201,27 +385,58 @@ def object_geometry(cloud: ObjectPoints, occupancy: ShadowOccupancy | None, seg_
     ``poses`` (V, 4, 4) are the views' camera-to-world poses, for ``up_axis`` ``auto``.
     """
     k = cloud.num_objects
-    box_points, box_object = cloud.points, cloud.object
-    if occupancy is not None and occupancy.cell.size:  # the solid voxels reach below what the views saw
-        owner = seg_object[occupancy.segment]
-        solid = (owner >= 0) & (occupancy.solid >= 0.5)
-        box_points = np.concatenate([box_points, occupancy.cell[solid] * (config.voxel_size / unit_scale)])
-        box_object = np.concatenate([box_object, owner[solid]])
-        order = np.argsort(box_object, kind="stable")
-        box_points, box_object = box_points[order], box_object[order]
-    center, size, rotation = oriented_boxes(box_points, box_object, k, world_up(poses, config.up_axis))
-    quaternion = np.full((k, 4), np.nan)
-    measured = np.isfinite(size).all(axis=1)
-    if measured.any():
-        quaternion[measured] = Rotation.from_matrix(rotation[measured]).as_quat()  # [x, y, z, w]
+    frame = _UpFrame.of(world_up(poses, config.up_axis))
+    samples = solid_samples(occupancy, seg_object, config.voxel_size, unit_scale)
+    points, obj = cloud.points, cloud.object
+    rejected = np.zeros(0, dtype=np.int64)
+    if samples is None or samples.points.shape[0] == 0:
+        angle = _footprint_angle(points, obj, k, frame)
+        local = _local(points, obj, np.cos(angle), np.sin(angle), frame)
+        lo = segment_min(local, obj, k, empty=np.nan)
+        hi = segment_max(local, obj, k, empty=np.nan)
+    else:
+        has_samples = np.bincount(samples.object, minlength=k) > 0
+        angle = _footprint_angle(samples.points, samples.object, k, frame)
+        if not has_samples.all():
+            angle = np.where(has_samples, angle, _footprint_angle(points, obj, k, frame))
+        cos, sin = np.cos(angle), np.sin(angle)
+        pad = samples.spacing / 2.0
+        local_samples = _local(samples.points, samples.object, cos, sin, frame)
+        lo = segment_min(local_samples, samples.object, k, empty=np.nan) - pad
+        hi = segment_max(local_samples, samples.object, k, empty=np.nan) + pad
+        # A point inside its object's box of solid samples cannot widen it; one outside must lie within a
+        # sub-cell of a solid sample of its object (objects without solid samples keep all their points).
+        local = _local(points, obj, cos, sin, frame)
+        counts = np.bincount(obj, minlength=k)
+        low = np.where(has_samples[:, None], lo, np.inf)
+        high = np.where(has_samples[:, None], hi, -np.inf)
+        outside = np.zeros(points.shape[0], dtype=bool)
+        for axis in range(3):  # per axis on contiguous columns; the bounds repeated along the sorted points
+            column = local[:, axis]
+            outside |= (column < np.repeat(low[:, axis], counts)) | (column > np.repeat(high[:, axis], counts))
+        candidates = np.flatnonzero(outside)
+        near = _near_samples(points[candidates], obj[candidates], samples)
+        accepted, rejected = candidates[near], candidates[~near]
+        lo = np.fmin(lo, segment_min(local[accepted], obj[accepted], k, empty=np.nan))
+        hi = np.fmax(hi, segment_max(local[accepted], obj[accepted], k, empty=np.nan))
+        # objects without solid samples: their points alone
+        lo = np.where(has_samples[:, None], lo, segment_min(local, obj, k, empty=np.nan)) if not has_samples.all() else lo
+        hi = np.where(has_samples[:, None], hi, segment_max(local, obj, k, empty=np.nan)) if not has_samples.all() else hi
+    center, size, rotation = _boxes(lo, hi, angle, frame)
+    quaternion = _quaternions(np.arctan2(rotation[:, :, 0] @ frame.h2, rotation[:, :, 0] @ frame.h1), frame)
+    quaternion[~np.isfinite(size).all(axis=1)] = np.nan
     volume, volume_std = object_volumes(occupancy, seg_object, k, config.voxel_size, unit_scale,
                                         config.volume_relative_std)
     seen = (seg_object >= 0) & (segment_points > 0)
     pairs = np.unique(seg_object[seen] * (int(segment_view.max(initial=0)) + 1) + segment_view[seen])
     num_views = np.bincount(pairs // (int(segment_view.max(initial=0)) + 1), minlength=k)
+    seen = points
+    if rejected.size:  # the extent spans the points the box spans: rejected rows drop out of the reductions
+        seen = points.copy()
+        seen[rejected] = np.nan
     return ObjectGeometry(
         center=center, size=size, quaternion=quaternion, volume=volume, volume_std=volume_std,
-        extent_min=segment_min(cloud.points, cloud.object, k, empty=np.nan),
-        extent_max=segment_max(cloud.points, cloud.object, k, empty=np.nan),
+        extent_min=_nan_segment_reduce(np.fmin, seen, obj, k),
+        extent_max=_nan_segment_reduce(np.fmax, seen, obj, k),
         num_points=cloud.counts, num_views=num_views,
     )
