@@ -18,13 +18,16 @@ import pytest
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model
 from shadowcorr.bundle import PointSegments
+from shadowcorr.convert import load_ue_scene
 from shadowcorr.evaluation import segment_metrics
 from shadowcorr.io import write_bundle
 from shadowcorr.sitemap import MapBusyError, MapConflictError, MapFileError, SiteMap
 from shadowcorr.sitemap._revision import revise
 from shadowcorr.sitemap._store import pack_array, unpack_array
+from shadowcorr.stages import refine_poses
+from shadowcorr.synth.noise import perturbed_pose
 
-from .paths import REPO
+from .paths import REPO, SAMPLE_DIR
 from .scenes import sphere_scene
 
 CENTRES = np.array([[0, 0, 45], [140, 20, 40], [-100, 110, 42], [40, -150, 38], [-90, -80, 40], [110, 150, 44]], float)
@@ -152,6 +155,46 @@ def test_revisions_follow_the_new_evidence_only() -> None:
     assert plan.retired == [40] and plan.merged_into == {}
     kinds = [(e.kind, e.object, e.into, e.moved) for e in plan.events if e.kind not in ("observed", "created")]
     assert kinds == [("split", 40, 41, [2]), ("split", 40, 42, [3]), ("retired", 40, None, [2, 3])]
+
+
+def test_a_stored_segment_the_scan_sees_is_revised_without_new_segments_in_its_group() -> None:
+    # Run segments: 0 new; 1-4 stored.  Object 20 (1, 2, 3), object 21 (4).  The run puts 1, 2 with the
+    # new segment and 3 with 4: only the scan's views seeing 3 (or 4) lets it revise that group.
+    group = np.array([0, 0, 0, 1, 1])
+    new = np.array([True, False, False, False, False])
+    stored = np.array([-1, 20, 20, 20, 21])
+    margin = np.full(5, 0.5)
+    unseen = revise(group, new, stored, margin, {20: 3, 21: 1}, first_new_object=22)
+    assert unseen.segment_object.tolist() == [20, 20, 20, 20, 21]
+    seen = revise(group, new, stored, margin, {20: 3, 21: 1}, first_new_object=22,
+                  seen=np.array([False, False, False, True, False]))
+    assert seen.segment_object.tolist() == [20, 20, 20, 21, 21]
+    kinds = [(e.kind, e.object, e.into, e.moved) for e in seen.events if e.kind != "observed"]
+    assert kinds == [("split", 20, 21, [3])]
+    # Seen, but in a group of its own without an owner: split off into a new object, created by it.
+    alone = revise(np.array([0, 0, 0, 1, 2]), new, stored, margin, {20: 3, 21: 1}, first_new_object=22,
+                   seen=np.array([False, False, False, True, False]))
+    assert alone.segment_object.tolist() == [20, 20, 20, 22, 21] and alone.created == [22]
+    kinds = [(e.kind, e.object, e.into, e.moved) for e in alone.events if e.kind != "observed"]
+    assert kinds == [("created", 22, None, [3]), ("split", 20, 22, [3])]
+
+
+def test_poses_after_the_last_scan_are_one_registration_of_all_views_whatever_the_order(tmp_path, model) -> None:
+    truth = load_ue_scene(SAMPLE_DIR, "2001", [0, 2, 4, 6])
+    rng = np.random.default_rng(5)
+    noisy = dataclasses.replace(truth, views=[dataclasses.replace(v, pose=perturbed_pose(rng, v.pose, 1.0, 2.5))
+                                              for v in truth.views])
+    at_once = {v.name: v.pose for v in refine_poses(noisy)[0].views}
+    assert any(not np.allclose(at_once[v.name], v.pose) for v in noisy.views)  # registration corrected some
+    for k, order in enumerate(([(0, 1), (2, 3)], [(3,), (0, 2), (1,)])):
+        with SiteMap(tmp_path / f"order{k}.map", model=model) as site:
+            for cams in order:
+                site.add(dataclasses.replace(noisy, views=[noisy.views[c] for c in cams]))
+            rows = site._store.view_rows(list(range(1, 5)), with_images=False)
+        ours = {r["name"]: unpack_array(r["pose"], "float64", "4,4") for r in rows}
+        assert sorted(ours) == sorted(at_once)
+        for name, pose in ours.items():
+            assert np.allclose(pose, at_once[name], atol=1e-6), name
 
 
 def test_the_map_file_keeps_arrays_as_raw_bytes_and_reopens_intact(tmp_path, model, ring) -> None:

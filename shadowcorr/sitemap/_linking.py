@@ -8,16 +8,17 @@ segment or a new view's frustum holds one of its segment centroids (in front of 
 inside the image, within ``max_depth``); the ``max_views`` with most such centroids are kept.
 
 **Poses.**  With ``refine_poses`` the new views are registered together with the linked stored
-views (the stage's :func:`~shadowcorr.stages.refine_poses`, unchanged; stored views bring their
-coarse depth).  Registration corrects every view of a connected group so that the group's
-corrections average zero; the map's views are the reference, so every correction of a group
-that holds stored views is taken relative to the stored views' mean correction (rotations
-averaged as quaternions): stored poses stay exactly as stored, and the new views move onto them.
-A group of new views only keeps its own corrections.  Stored views corrected relative to that
-reference move too, their segments with them: each update registers the linked neighbourhood
-anew, so a stored pair registered alone (two views, under depth noise good to about half a
-degree) is brought into line with the views added since (measured on the real scene under the
-``field`` errors: the map's average purity 93-98 with the stored poses fixed, 97-99 corrected).
+views by the stage itself (:func:`~shadowcorr.stages.refine_poses`), every view at the pose its
+scan declared (the map keeps it beside the registered one), stored views on the stage's own
+sampling grid (kept at full precision for this: the very pixels the stage reads of a full
+image), and the views listed by name, then scan, not in the order they were added.  Every view
+then takes the pose this registration gives it, as one run of all these views would, and
+stored views move with their segments (``registered_corrections``).  Registration is path
+independent this way: once a neighbourhood's views are all linked, its poses are what
+registering them at once gives, whatever the order the scans came in (on the real scene under
+the ``field`` errors, after the 4th scan of 2 views, the map's poses equal those of one run of
+the 8 views exactly).  Registering from the poses already corrected, or from the coarse summary
+depth, moved views by up to 3 degrees from that solution and changed the map's partitions.
 
 **Revisits.**  A new view taken from the place of a stored one (after registration: the camera
 within ``REVISIT_VOXELS`` voxels, turned by less than ``REVISIT_DEG``, the same image size and
@@ -35,8 +36,8 @@ from ..bundle import SceneBundle, View
 from ..result import ViewPoseCorrection
 from ._summaries import StoredViews, ViewSummary
 
-__all__ = ["FOOTPRINT_MARGIN_VOXELS", "REVISIT_DEG", "REVISIT_IOU", "REVISIT_VOXELS", "anchor_corrections",
-           "corrected_report", "footprints", "in_frustum", "rank_views", "revisits"]
+__all__ = ["FOOTPRINT_MARGIN_VOXELS", "REVISIT_DEG", "REVISIT_IOU", "REVISIT_VOXELS", "corrected_report",
+           "footprints", "in_frustum", "rank_views", "registered_corrections", "revisits"]
 
 #: A footprint is widened by this many voxels: the two sides of one rock, seen from opposite
 #: views, are two boxes that may only touch.
@@ -91,43 +92,39 @@ def rank_views(new_cams: list[tuple], new_centroids: np.ndarray, stored_cams: di
     return [view for _, view in sorted(scores)[:max_views]]
 
 
-def anchor_corrections(bundle: SceneBundle, reports: list[ViewPoseCorrection], num_new: int
-                       ) -> list[np.ndarray | None]:
-    """Every view's correction relative to the stored views of its registration group (see the module
-    docstring): the first ``num_new`` views of ``bundle`` are new, the others stored.  None where the
-    view keeps its pose (not corrected, or the reference of a group of one stored view)."""
-    n = len(bundle.views)
-    names = {v.name: k for k, v in enumerate(bundle.views)}
-    parent = list(range(n))
+def registered_corrections(reports: list[ViewPoseCorrection], current: list[np.ndarray], declared: list[np.ndarray]
+                           ) -> list[np.ndarray | None]:
+    """Every view's move from its ``current`` pose to the pose a registration of the run at the
+    ``declared`` poses gives it (see the module docstring); None where it stays.
 
-    def root(k: int) -> int:
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
+    ``reports``: the registration's, one per view.  A corrected view goes to its corrected declared
+    pose; a view of a group whose declared poses already agree (``unchanged``) or whose corrections
+    the masks do not bear out (``not_confirmed``) goes back to its declared pose, as it would in one
+    run of all these views; a view the run could not judge (not registered, correction too large)
+    keeps its current pose.
+    """
+    out: list[np.ndarray | None] = []
+    for report, now, before in zip(reports, current, declared):
+        if report.status == "corrected":
+            target = np.asarray(report.correction, dtype=np.float64) @ before
+        elif report.status in ("unchanged", "not_confirmed"):
+            target = before
+        else:
+            target = now
+        move = target @ _rigid_inverse(now)
+        out.append(None if np.allclose(move, np.eye(4), atol=1e-12) else move)
+    return out
 
-    for k, report in enumerate(reports):
-        for other in report.neighbours:
-            parent[root(k)] = root(names[other])
-    corrections = [np.asarray(r.correction, dtype=np.float64) for r in reports]
-    corrected = [r.status == "corrected" for r in reports]
-    out: list[np.ndarray | None] = [None] * n
-    for group in {root(k) for k in range(n) if corrected[k]}:
-        members = [k for k in range(n) if corrected[k] and root(k) == group]
-        anchors = [k for k in members if k >= num_new]
-        reference = np.eye(4)
-        if anchors:
-            reference[:3, :3] = Rotation.from_matrix(np.stack([corrections[k][:3, :3] for k in anchors])).mean().as_matrix()
-            reference[:3, 3] = np.mean([corrections[k][:3, 3] for k in anchors], axis=0)
-        for k in members:
-            relative = np.linalg.solve(reference, corrections[k])
-            if not np.allclose(relative, np.eye(4), atol=1e-12):
-                out[k] = relative
+
+def _rigid_inverse(pose: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = pose[:3, :3].T
+    out[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
     return out
 
 
 def corrected_report(report: ViewPoseCorrection, view: View, correction: np.ndarray | None) -> ViewPoseCorrection:
-    """A view's report with its correction relative to the map (``anchor_corrections``)."""
+    """A view's report with its correction relative to its pose in the map (``registered_corrections``)."""
     if correction is None:
         return report
     moved = correction @ view.pose
@@ -138,14 +135,15 @@ def corrected_report(report: ViewPoseCorrection, view: View, correction: np.ndar
 
 
 def revisits(summaries: list[ViewSummary], new_view: np.ndarray, stored: StoredViews, voxel_size: float
-             ) -> tuple[list[int], np.ndarray]:
-    """The stored views (indices) that new views repeat, and for every new segment the object of the
-    stored segment it repeats (-1: none); see the module docstring.  ``new_view``: the view of each
-    new segment."""
+             ) -> tuple[list[int], list[int], np.ndarray]:
+    """The stored views (indices) that new views repeat, the new views (indices) that repeat one, and
+    for every new segment the object of the stored segment it repeats (-1: none); see the module
+    docstring.  ``new_view``: the view of each new segment."""
     repeats = np.full(len(new_view), -1, dtype=np.int64)
     new_first = np.searchsorted(new_view, np.arange(len(summaries)))
     stored_first = np.searchsorted(stored.segments.view, np.arange(len(stored.views)))
     twins: set[int] = set()
+    repeating: set[int] = set()
     for j, summary in enumerate(summaries):
         fx, fy, cx, cy, _, _ = summary.intrinsics
         f = summary.stride
@@ -163,6 +161,7 @@ def revisits(summaries: list[ViewSummary], new_view: np.ndarray, stored: StoredV
             theirs = _grid(summary.depth.shape, np.where(image.window >= 0, image.window - stored_first[w], -1),
                            image.top, image.left, int(stored_first[w]))
             twins.add(w)
+            repeating.add(j)
             both = (mine >= 0) & (theirs >= 0)
             if not both.any():
                 continue
@@ -174,7 +173,7 @@ def revisits(summaries: list[ViewSummary], new_view: np.ndarray, stored: StoredV
             iou = shared / (area_a[a] + area_b[b] - shared)
             same = iou > REVISIT_IOU
             repeats[a[same]] = stored.segment_objects[b[same]]
-    return sorted(twins), repeats
+    return sorted(twins), sorted(repeating), repeats
 
 
 def _grid(shape: tuple[int, int], window: np.ndarray, top: int, left: int, first: int) -> np.ndarray:

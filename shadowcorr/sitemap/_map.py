@@ -17,7 +17,8 @@ from ..nn import Model, load_model
 from ..pipeline import cut_segments, embed, prepare_segments
 from ..result import ViewPoseCorrection
 from ..stages import Segments, VoxelScene, group_by_evidence, pose_warnings, refine_poses, segment_support, support_features
-from ._linking import FOOTPRINT_MARGIN_VOXELS, anchor_corrections, corrected_report, footprints, rank_views, revisits
+from ._linking import (FOOTPRINT_MARGIN_VOXELS, corrected_report, footprints, rank_views, registered_corrections,
+                       revisits)
 from ._models import MapEvent, MapObject, MapScan, MapSegment, MapState, MapUpdate, MapViewRef
 from ._revision import revise
 from ._store import CELL_VOXELS, MapConflictError, MapStore, cell_keys, unpack_array
@@ -64,6 +65,8 @@ class ScanPlan:
     stored_objects: np.ndarray  # their objects when prepared
     linked_views: list[MapViewRef]
     repeats: np.ndarray  # (num_new,) the object of the stored segment each new one repeats (-1: none)
+    seen_by: np.ndarray  # (stored segments, fresh views) bool: the scan's view sees the stored segment
+    fresh_views: list[str]  # the scan's views that repeat no stored view
     revisited_views: list[MapViewRef]  # stored views the scan repeats (left out of the run)
     poses: list[ViewPoseCorrection] | None
     moved_views: list[MovedView]  # stored views whose pose the scan's registration corrected
@@ -79,16 +82,17 @@ class SiteMap:
     runs the ``fused`` method's evidence over the scan's segments and the linked views' stored
     segments together: the scan's views and the stored views (read back from their summaries:
     coarse depth and segment images, points on the downsampling grid) are registered
-    together when ``refine_poses`` is on (the stored poses stay fixed), every segment lands in
+    together when ``refine_poses`` is on (from their declared poses, as one run of them would
+    be; stored views move with their segments), every segment lands in
     the other views (surface evidence), their shadows meet in one voxel grid (volumetric
     evidence through the network), and the per-view constraints apply.  The run's groups are
     then read against the map's objects: the scan's segments take the ids of the objects they
-    join, and a stored segment changes object only when a group holding new segments says so
-    with an evidence margin above ``min_margin`` (``shadowcorr.sitemap._revision`` has the
-    rules).  Every revision is an event - ``created``, ``observed``, ``merged``, ``split``,
-    ``retired`` - naming the scan, views and segments that caused it and the weakest evidence
-    margin among them.  One update is one transaction: a writer killed mid-update leaves the map
-    as the last update left it.
+    join, and a stored segment changes object only where the scan brings new evidence about it -
+    its group holds new segments, or a view of the scan sees it - and its evidence margin exceeds
+    ``min_margin`` (``shadowcorr.sitemap._revision`` has the rules).  Every revision is an event -
+    ``created``, ``observed``, ``merged``, ``split``, ``retired`` - naming the scan, views and
+    segments that caused it and the weakest evidence margin among them.  One update is one
+    transaction: a writer killed mid-update leaves the map as the last update left it.
 
     ``path``: the map file, created when absent (``create=False`` refuses a missing one).
     ``config``: the method's settings (``fused``); a new map stores them, an existing one keeps
@@ -192,17 +196,18 @@ class SiteMap:
             stored = stored_views(self._store.view_rows(linked), self._store.segment_rows(linked)) if linked else None
         timings["map_read"] = (time.perf_counter() - t0) * 1e3
         poses, stored_moves = None, []
+        declared = [v.pose for v in local.views]
         if config.refine_poses:
             t0 = time.perf_counter()
             local, new, poses, stored_moves = _register(local, new, stored, config)
             timings["poses"] = (time.perf_counter() - t0) * 1e3
         moved_views = _stored_moves(stored, stored_moves)
         images = list(new.pixel_segment or [])
-        summaries = summarize_views(local, new, images, config.max_depth)
+        summaries = summarize_views(local, new, images, config.max_depth, declared)
         points = segment_points(new, config.downsample_size)
-        repeats, revisited = np.full(new.num_segments, -1, dtype=np.int64), []
+        repeats, revisited, repeating = np.full(new.num_segments, -1, dtype=np.int64), [], []
         if stored is not None:
-            twins, repeats = revisits(summaries, new.view, stored, config.voxel_size)
+            twins, repeating, repeats = revisits(summaries, new.view, stored, config.voxel_size)
             revisited = [MapViewRef(scan=int(stored.view_scans[w]), view=stored.view_names[w]) for w in twins]
             stored = stored.subset([w for w in range(len(stored.views)) if w not in twins])
         if stored is not None:
@@ -210,6 +215,11 @@ class SiteMap:
             scene = prepare_segments(run, join_segments(new, stored.segments), config, timings)
         else:
             scene = prepare_segments(local, new, config, timings)
+        # Which stored segments the scan's own views see (their surface is visible there): the
+        # scan is new evidence about them.  A view that repeats a stored one is not.
+        fresh = [j for j in range(len(local.views)) if j not in repeating]
+        seen_by = (scene.surface.visible[new.num_segments:, fresh] > 0 if scene.surface is not None and fresh
+                   else np.zeros((scene.num_segments - new.num_segments, len(fresh)), dtype=bool))
         return ScanPlan(
             name=name or bundle.name, map_scan=map_scan, scene=scene, num_new=new.num_segments,
             new_view=new.view.copy(), new_instance=new.instance.copy(), new_component=new.component.copy(),
@@ -219,6 +229,8 @@ class SiteMap:
             linked_views=[MapViewRef(scan=int(s), view=v) for s, v in zip(stored.view_scans, stored.view_names)]
             if stored else [],
             repeats=repeats,
+            seen_by=seen_by,
+            fresh_views=[local.views[j].name for j in fresh],
             revisited_views=revisited,
             poses=poses,
             moved_views=moved_views,
@@ -272,12 +284,14 @@ class SiteMap:
             stored_object = np.r_[np.full(n, -1, dtype=np.int64), plan.stored_objects]
             repeats = np.r_[plan.repeats, np.full(len(plan.stored_segments), -1, dtype=np.int64)]
             sizes = store.object_sizes(np.unique(np.r_[plan.stored_objects, plan.repeats[plan.repeats >= 0]]).tolist())
+            seen = np.r_[np.zeros(n, dtype=bool), plan.seen_by.any(axis=1)]
             revision = revise(groups.labels, is_new, stored_object, margin, sizes, store.next_object(), self.min_margin,
-                              repeats)
+                              repeats, seen)
             scan = store.add_scan(plan.name, len(plan.summaries), n, model_sha256)
             store.add_objects(revision.created, scan)
-            view_ids = [store.add_view(scan, s.name, s.pose, s.intrinsics, s.stride, s.depth, s.labels, s.labels_top,
-                                       s.labels_left, s.lo, s.hi, CELL_VOXELS * config.voxel_size)
+            view_ids = [store.add_view(scan, s.name, s.pose, s.declared, s.intrinsics, s.stride, s.depth, s.labels,
+                                       s.labels_top, s.labels_left, s.grid_stride, s.grid_depth, s.grid_mask, s.lo,
+                                       s.hi, CELL_VOXELS * config.voxel_size)
                         for s in plan.summaries]
             for moved_view in plan.moved_views:
                 store.move_view(moved_view.view, moved_view.pose, moved_view.lo, moved_view.hi,
@@ -298,7 +312,9 @@ class SiteMap:
             view_names = [s.name for s in plan.summaries]
             for e in revision.events:
                 named = np.asarray(e.segments, dtype=np.int64)
-                views = sorted({view_names[plan.new_view[i]] for i in named.tolist()})
+                seeing = plan.seen_by[np.asarray(e.moved, dtype=np.int64) - n].any(axis=0) if e.moved else []
+                views = sorted({view_names[plan.new_view[i]] for i in named.tolist()}
+                               | {v for v, saw in zip(plan.fresh_views, seeing) if saw})
                 moved_ids = merged_moves[e.object] if e.kind == "merged" else run_ids[e.moved].tolist()
                 number = store.add_event(scan, e.kind, e.object, e.into, views, run_ids[named].tolist(), moved_ids,
                                          e.margin)
@@ -393,15 +409,25 @@ def _in_map_units(bundle: SceneBundle, config: ShadowCorrConfig) -> SceneBundle:
 
 
 def _register(local: SceneBundle, new: Segments, stored: StoredViews | None, config: ShadowCorrConfig):
-    """Register the new views with each other and the linked stored views (``_linking``); segments move
-    with their views.  Returns the scan, its segments, the pose reports (new views, then the stored
-    views that moved) and the stored views' corrections (None: kept)."""
+    """Register the new views together with the linked stored views (``_linking``): every view at the
+    pose its scan declared, stored views on the pose stage's own sampling grid, all in one order that
+    does not depend on when they were added; views and segments move to the poses found.  Returns
+    the scan, its segments, the pose reports (new views, then the stored views that moved) and the
+    stored views' corrections relative to their poses in the map (None: kept)."""
     n = len(local.views)
-    run = dataclasses.replace(local, views=[*local.views, *(stored.views if stored is not None else [])])
-    _, reports = refine_poses(run, config)
-    corrections = anchor_corrections(run, reports, n)
-    out_reports = [corrected_report(r, v, c) for r, v, c in zip(reports, run.views, corrections)
-                   if r.view in set(v.name for v in local.views) or c is not None]
+    grid = stored.grid_views if stored is not None else []
+    current = [*local.views, *(stored.views if stored is not None else [])]
+    latest = np.iinfo(np.int64).max  # the scan being added comes after every stored one
+    keys = [(v.name, latest) for v in local.views] + (
+        [(name, int(scan)) for name, scan in zip(stored.view_names, stored.view_scans)] if stored is not None else [])
+    order = sorted(range(len(keys)), key=keys.__getitem__)
+    _, ordered = refine_poses(dataclasses.replace(local, views=[[*local.views, *grid][k] for k in order]), config)
+    reports: list[ViewPoseCorrection] = [ordered[0]] * len(order)
+    for k, report in zip(order, ordered):
+        reports[k] = report
+    corrections = registered_corrections(reports, [v.pose for v in current], [v.pose for v in [*local.views, *grid]])
+    out_reports = [corrected_report(r, v, c) for k, (r, v, c) in enumerate(zip(reports, current, corrections))
+                   if k < n or c is not None]
     local = dataclasses.replace(local, views=_moved_views(local.views, corrections[:n]))
     new = _moved_segments(new, corrections[:n])
     if stored is not None:

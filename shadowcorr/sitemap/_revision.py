@@ -1,4 +1,4 @@
-"""Groups of one linking run -> the map's object ids, revised only where the run's new segments say so.
+"""Groups of one linking run -> the map's object ids, revised only where the scan's new evidence says so.
 
 A run groups the new scan's segments together with the stored segments of the map's views
 that see the same ground.  Its groups are read against the objects those stored segments
@@ -8,19 +8,25 @@ already belong to:
    one object: the assignment that keeps the most stored segments where they are (Hungarian
    method on the counts of each object's stored segments in each group).  An object keeps
    its id; the group it is assigned to is its home.
-2. **New segments.**  Only groups holding at least one new segment carry new evidence.  Their
-   new segments take the group's owner (``observed``); a group with new segments and no
-   owner becomes a new object (``created``) - unless it holds stored segments none of which
-   may move (below), in which case its new segments join the object most of those belong to.
-3. **Revisions.**  A stored segment in a group with new segments whose owner is another object
-   moves there when its evidence margin in the run exceeds ``min_margin``.  When every stored
+2. **New segments.**  The new segments of a group take the group's owner (``observed``); a
+   group with new segments and no owner becomes a new object (``created``) - unless it holds
+   stored segments none of which may move (below), in which case its new segments join the
+   object most of those belong to.
+3. **Revisions.**  A stored segment in a group that carries new evidence - it holds new segments,
+   or stored segments that the scan's views see - whose owner is another object moves there
+   when its evidence margin in the run exceeds ``min_margin``; a group of such stored segments
+   without an owner becomes a new object.  When every stored
    segment of an object that lost its home moves to one object, the two were one rock:
    ``merged`` (the owner survives, the other id is retired and all its segments, in views
    the run did not load too, take the survivor's id).  Otherwise each move is a ``split`` of
    the object into the one it joins, and an object left without segments is ``retired``.
 
-Stored segments in groups without new segments never change: what the run re-read of
-evidence already in the map is not new evidence.  Nor is a revisit: a new segment that repeats a
+A new view that sees a stored segment's surface adds evidence about it (its landings, its depth
+carving the shadows, its shadows in the voxels) even where none of its own segments joins that
+segment's group; with the whole neighbourhood in the run, the map then takes the run's partition
+as one run of all those views would give it, whatever the order the scans came in.  Stored
+segments that no view of the scan sees never change: what the run re-read of evidence already
+in the map is not new evidence.  Nor is a revisit: a new segment that repeats a
 stored one (the same camera, the same pixels; see ``_linking.revisits``) takes that segment's
 id and counts, for the homes, as a stored segment of it; only the scan's other segments are
 new evidence.  Nothing here reads ground truth.
@@ -59,7 +65,7 @@ class RevisionPlan:
 
 def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, margin: np.ndarray,
            segments_in_map: dict[int, int], first_new_object: int, min_margin: float = 0.0,
-           repeats: np.ndarray | None = None) -> RevisionPlan:
+           repeats: np.ndarray | None = None, seen: np.ndarray | None = None) -> RevisionPlan:
     """Object ids for the segments of one run (see the module docstring).
 
     ``group``: the run's group of each segment; ``is_new``: the segment belongs to the scan being
@@ -68,7 +74,7 @@ def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, mar
     alternative); ``segments_in_map``: how many segments each object present in the run has in
     the whole map (to tell when one is left empty); ``first_new_object``: the id a created
     object gets first; ``repeats``: for each new segment that repeats a stored one, that one's
-    object (-1 elsewhere).
+    object (-1 elsewhere); ``seen``: the stored segments a view of the scan sees (None: none).
     """
     group = np.asarray(group, dtype=np.int64)
     repeated = np.full(group.size, -1, dtype=np.int64) if repeats is None else np.asarray(repeats, dtype=np.int64)
@@ -98,7 +104,10 @@ def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, mar
         home[cols[kept]] = rows[kept]
 
     evidence = is_new & ~fixed
+    # Groups that carry new evidence: new segments, or stored segments a view of the scan sees.
     has_new = np.bincount(group_of[evidence], minlength=num_groups) > 0
+    if seen is not None:
+        has_new |= np.bincount(group_of[np.asarray(seen, dtype=bool) & ~is_new], minlength=num_groups) > 0
     movable = ~is_new & (margin > min_margin)
     target = owner.copy()
     next_object = first_new_object
@@ -119,7 +128,8 @@ def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, mar
     moves = np.flatnonzero(movable & has_new[group_of] & (target[group_of] != stored_object))
     out[moves] = target[group_of[moves]]
 
-    weakest = lambda idx: float(margin[idx].min()) if len(idx) else None  # noqa: E731 - a one-line reducer
+    def weakest(idx) -> float | None:
+        return float(margin[np.asarray(idx, dtype=np.int64)].min()) if len(idx) else None
 
     def causing(groups: np.ndarray) -> list[int]:
         return np.flatnonzero(evidence & np.isin(group_of, groups)).tolist()
@@ -158,6 +168,11 @@ def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, mar
         new_segments = np.flatnonzero(is_new & (out == obj)).tolist()
         kind = "created" if obj in created_set else "observed"
         events.append(Revision(kind, obj, segments=new_segments, margin=weakest(new_segments)))
+        created_set.discard(obj)
+    for obj in created:  # objects split off stored segments alone (the split events name them)
+        if obj in created_set:
+            members = np.flatnonzero(~is_new & (out == obj))
+            events.append(Revision("created", obj, moved=members.tolist(), margin=weakest(members)))
     events += revisions
     assert out.size == n
     return RevisionPlan(out, events, merged_into, created, retired)

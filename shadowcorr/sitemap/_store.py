@@ -4,9 +4,11 @@ Tables (lengths in the map's units, poses camera-to-world in the OpenCV optical 
 
     meta       key -> value: format version, the map's configuration, the model it was made with
     scans      one row per update: name, time, views and segments added
-    views      per view its pose, intrinsics, image size and its summary: depth and segment-index
-               image every ``stride``-th pixel (the pixel at stride * i + stride // 2), and the
-               footprint (bounding box of its segments' points)
+    views      per view its pose (as registered with the map) and the pose its scan declared,
+               intrinsics, image size and its summary: depth and segment-index
+               image every ``stride``-th pixel (the pixel at stride * i + stride // 2), depth and
+               mask (rock or not) on the pose stage's sampling grid (every ``grid_stride``-th
+               pixel, float32), and the footprint (bounding box of its segments' points)
     view_cells the footprint's cells (cube of CELL_SIZE voxels): which views may see a place
     segments   per segment its view, mask id, blob, current object, support and evidence margin,
                centroid and its points averaged on the downsampling grid
@@ -36,7 +38,7 @@ import numpy as np
 __all__ = ["FORMAT_VERSION", "MapBusyError", "MapConflictError", "MapFileError", "MapStore", "pack_array",
            "unpack_array"]
 
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"
 #: Footprint cells are cubes of this many voxels: a view's footprint spans a few of them.
 CELL_VOXELS = 64
 _CELL_BITS = 21
@@ -51,11 +53,15 @@ CREATE TABLE scans (
     num_views INTEGER NOT NULL, num_segments INTEGER NOT NULL, model TEXT);
 CREATE TABLE views (
     view INTEGER PRIMARY KEY, scan INTEGER NOT NULL REFERENCES scans, name TEXT NOT NULL,
-    pose BLOB NOT NULL, fx REAL NOT NULL, fy REAL NOT NULL, cx REAL NOT NULL, cy REAL NOT NULL,
+    pose BLOB NOT NULL, declared BLOB NOT NULL,
+    fx REAL NOT NULL, fy REAL NOT NULL, cx REAL NOT NULL, cy REAL NOT NULL,
     width INTEGER NOT NULL, height INTEGER NOT NULL, stride INTEGER NOT NULL,
     depth BLOB NOT NULL, depth_dtype TEXT NOT NULL, depth_shape TEXT NOT NULL,
     labels BLOB NOT NULL, labels_dtype TEXT NOT NULL, labels_shape TEXT NOT NULL,
     labels_top INTEGER NOT NULL, labels_left INTEGER NOT NULL,
+    grid_stride INTEGER NOT NULL, grid_depth BLOB NOT NULL, grid_depth_dtype TEXT NOT NULL,
+    grid_depth_shape TEXT NOT NULL, grid_mask BLOB NOT NULL, grid_mask_dtype TEXT NOT NULL,
+    grid_mask_shape TEXT NOT NULL,
     lo_x REAL, lo_y REAL, lo_z REAL, hi_x REAL, hi_y REAL, hi_z REAL,
     UNIQUE (scan, name));
 CREATE TABLE view_cells (cell INTEGER NOT NULL, view INTEGER NOT NULL REFERENCES views,
@@ -231,7 +237,7 @@ class MapStore:
         return sorted(found)
 
     def view_rows(self, views: Sequence[int], with_images: bool = True) -> list[sqlite3.Row]:
-        cols = "*" if with_images else ("view, scan, name, pose, fx, fy, cx, cy, width, height, stride, "
+        cols = "*" if with_images else ("view, scan, name, pose, declared, fx, fy, cx, cy, width, height, stride, "
                                         "lo_x, lo_y, lo_z, hi_x, hi_y, hi_z")
         return self._rows(f"SELECT {cols} FROM views WHERE view IN ({{}}) ORDER BY view", views)
 
@@ -268,19 +274,21 @@ class MapStore:
                               (name, time.time(), num_views, num_segments, model))
         return int(cur.lastrowid)
 
-    def add_view(self, scan: int, name: str, pose: np.ndarray, intrinsics: tuple[float, float, float, float, int, int],
-                 stride: int, depth: np.ndarray, labels: np.ndarray, labels_top: int, labels_left: int,
-                 lo: np.ndarray | None, hi: np.ndarray | None, cell: float) -> int:
-        depth_b, depth_t, depth_s = pack_array(depth, compress=True)
-        labels_b, labels_t, labels_s = pack_array(labels, compress=True)
+    def add_view(self, scan: int, name: str, pose: np.ndarray, declared: np.ndarray,
+                 intrinsics: tuple[float, float, float, float, int, int], stride: int, depth: np.ndarray,
+                 labels: np.ndarray, labels_top: int, labels_left: int, grid_stride: int, grid_depth: np.ndarray,
+                 grid_mask: np.ndarray, lo: np.ndarray | None, hi: np.ndarray | None, cell: float) -> int:
+        arrays = [x for a in (depth, labels, grid_depth, grid_mask) for x in pack_array(a, compress=True)]
         box = [None] * 6 if lo is None else [float(x) for x in (*lo, *hi)]
         cur = self.db.execute(
-            "INSERT INTO views (scan, name, pose, fx, fy, cx, cy, width, height, stride, depth, depth_dtype, depth_shape, "
-            "labels, labels_dtype, labels_shape, labels_top, labels_left, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z) "
-            "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            (scan, name, pack_array(np.asarray(pose, dtype=np.float64))[0], *map(float, intrinsics[:4]),
-             int(intrinsics[4]), int(intrinsics[5]), stride, depth_b, depth_t, depth_s, labels_b, labels_t, labels_s,
-             labels_top, labels_left, *box))
+            "INSERT INTO views (scan, name, pose, declared, fx, fy, cx, cy, width, height, stride, depth, depth_dtype, "
+            "depth_shape, labels, labels_dtype, labels_shape, labels_top, labels_left, grid_stride, grid_depth, "
+            "grid_depth_dtype, grid_depth_shape, grid_mask, grid_mask_dtype, grid_mask_shape, lo_x, lo_y, lo_z, hi_x, "
+            f"hi_y, hi_z) VALUES ({', '.join('?' * 32)})",
+            (scan, name, pack_array(np.asarray(pose, dtype=np.float64))[0],
+             pack_array(np.asarray(declared, dtype=np.float64))[0], *map(float, intrinsics[:4]),
+             int(intrinsics[4]), int(intrinsics[5]), stride, *arrays[:6], labels_top, labels_left, grid_stride,
+             *arrays[6:], *box))
         view = int(cur.lastrowid)
         if lo is not None:
             self.db.executemany("INSERT INTO view_cells VALUES (?, ?)",

@@ -1,9 +1,12 @@
 """Per-view summaries: what the map keeps of a view instead of its images, and the views they stand in for.
 
-A view's summary is its pose, intrinsics and image size; its depth and its image of segment
-indices read every ``stride``-th pixel per axis (the pixel at ``stride * i + stride // 2``), so
-that the long side keeps at most :data:`SUMMARY_SIDE` pixels; and per segment its points
-averaged on the downsampling grid (``downsample_size``).  Read back, a summary is an ordinary
+A view's summary is its pose (as registered with the map, and as its scan declared it),
+intrinsics and image size; its depth and its image of segment indices read every ``stride``-th
+pixel per axis (the pixel at ``stride * i + stride // 2``), so that the long side keeps at most
+:data:`SUMMARY_SIDE` pixels; its depth (float32) and mask on the pixels pose registration samples
+(stage 01's grid of about 20 000 pixels), so that a stored view is registered from exactly what
+its full image would give; and per segment its points averaged on the downsampling grid
+(``downsample_size``).  Read back, a summary is an ordinary
 :class:`~shadowcorr.bundle.View` with the coarser image's intrinsics, and its segments are
 ordinary :class:`~shadowcorr.stages.Segments`: the stages that link a new scan to the map
 read stored views exactly as they read the scan's own (their masks are coarser, their points
@@ -19,6 +22,7 @@ import numpy as np
 
 from ..bundle import Intrinsics, SceneBundle, View
 from ..stages import SegmentImage, Segments, voxel_downsample
+from ..stages._01_poses import _SAMPLED_PIXELS as POSE_SAMPLES  # the grid the pose stage samples
 from ._store import unpack_array
 
 __all__ = ["SUMMARY_SIDE", "StoredViews", "ViewSummary", "summarize_views", "stored_views"]
@@ -32,13 +36,17 @@ class ViewSummary:
     """What the map stores of one view of a new scan."""
 
     name: str
-    pose: np.ndarray  # (4, 4) camera-to-world, map units
+    pose: np.ndarray  # (4, 4) camera-to-world, map units, as registered with the map
+    declared: np.ndarray  # (4, 4) the pose the scan declared (map units)
     intrinsics: tuple[float, float, float, float, int, int]  # fx, fy, cx, cy, width, height of the full image
     stride: int
     depth: np.ndarray  # (h, w) depth on the summary grid, map units, 0 = invalid
     labels: np.ndarray  # window of the segment index (within the view) on the summary grid, -1 = none
     labels_top: int
     labels_left: int
+    grid_stride: int  # the pose stage's sampling grid: every grid_stride-th pixel from grid_stride // 2
+    grid_depth: np.ndarray  # (h, w) float32 depth there, map units, 0 = invalid
+    grid_mask: np.ndarray  # (h, w) uint8: 1 where the view's mask has a rock
     lo: np.ndarray | None  # footprint: bounding box of the view's segment points (None: no points)
     hi: np.ndarray | None
 
@@ -47,10 +55,19 @@ def summary_stride(width: int, height: int) -> int:
     return max(1, math.ceil(max(width, height) / SUMMARY_SIDE))
 
 
+def grid_stride(width: int, height: int) -> int:
+    """The pose stage's sampling stride for an image of this size (``stages._01_poses._view_grid``)."""
+    return max(1, int(round(math.sqrt(height * width / POSE_SAMPLES))))
+
+
+def _on_grid(image: np.ndarray, stride: int) -> np.ndarray:
+    return np.asarray(image[stride // 2::stride, stride // 2::stride])
+
+
 def summarize_views(bundle: SceneBundle, segments: Segments, images: list[SegmentImage | None],
-                    max_depth: float) -> list[ViewSummary]:
+                    max_depth: float, declared: list[np.ndarray]) -> list[ViewSummary]:
     """The summary of every view of ``bundle`` (map units), whose segments are ``segments``
-    (``images``: their segment-index images, as cut)."""
+    (``images``: their segment-index images, as cut; ``declared``: the poses the scan declared)."""
     out = []
     first = np.searchsorted(segments.view, np.arange(len(bundle.views)))
     for j, view in enumerate(bundle.views):
@@ -70,11 +87,16 @@ def summarize_views(bundle: SceneBundle, segments: Segments, images: list[Segmen
             top = left = bottom = right = 0
         window = labels[top:bottom, left:right]
         window = window.astype(np.int16 if window.size == 0 or window.max() < np.iinfo(np.int16).max else np.int32)
+        g = grid_stride(k.width, k.height)
+        grid_depth = _on_grid(view.depth, g).astype(np.float32)
+        grid_depth = np.where(np.isfinite(grid_depth) & (grid_depth > 0), grid_depth, np.float32(0.0))
+        grid_mask = (_on_grid(view.mask, g) > 0).astype(np.uint8)
         mine = np.repeat(segments.view == j, segments.lengths)
         pts = segments.points[mine]
         lo, hi = (pts.min(axis=0), pts.max(axis=0)) if pts.size else (None, None)
-        out.append(ViewSummary(view.name, view.pose.copy(), (k.fx, k.fy, k.cx, k.cy, k.width, k.height), f, depth,
-                               window, int(top), int(left), lo, hi))
+        out.append(ViewSummary(view.name, view.pose.copy(), np.array(declared[j], dtype=np.float64),
+                               (k.fx, k.fy, k.cx, k.cy, k.width, k.height), f, depth, window, int(top), int(left),
+                               g, grid_depth, grid_mask, lo, hi))
     return out
 
 
@@ -89,8 +111,10 @@ def segment_points(segments: Segments, cell: float) -> list[np.ndarray]:
 class StoredViews:
     """Stored views read back: views (coarse images), their segments, and where each came from."""
 
-    views: list[View]
+    views: list[View]  # at their poses as registered with the map
     segments: Segments
+    declared: np.ndarray  # (V, 4, 4) the poses their scans declared
+    grid_views: list[View]  # the same views on the pose stage's grid, at their declared poses (registration)
     view_ids: np.ndarray  # (V,) map id of each view
     view_scans: np.ndarray  # (V,) the scan that added it
     view_names: list[str]  # as named in their scan
@@ -118,19 +142,29 @@ class StoredViews:
                             component=seg.component[mine], num_pixels=seg.num_pixels[mine],
                             camera_center=seg.camera_center[mine], optical_axis=seg.optical_axis[mine],
                             view_names=[seg.view_names[j] for j in keep], pixel_segment=images)
-        return StoredViews([self.views[j] for j in keep], segments, self.view_ids[keep], self.view_scans[keep],
-                           [self.view_names[j] for j in keep], self.segment_ids[mine], self.segment_objects[mine])
+        return StoredViews([self.views[j] for j in keep], segments, self.declared[keep],
+                           [self.grid_views[j] for j in keep], self.view_ids[keep],
+                           self.view_scans[keep], [self.view_names[j] for j in keep], self.segment_ids[mine],
+                           self.segment_objects[mine])
 
 
 def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
     """Views and segments of the map (rows of ``views`` and ``segments``, both ordered by view)."""
-    views, images = [], []
+    views, images, declared, grid_views = [], [], [], []
     by_view: dict[int, list] = {}
     for r in segment_rows:
         by_view.setdefault(r["view"], []).append(r)
     points, lengths, view_idx, instance, component, pixels, centres, axes, seg_ids, objects = ([] for _ in range(10))
     for j, r in enumerate(view_rows):
         pose = unpack_array(r["pose"], "float64", "4,4").copy()
+        declared.append(unpack_array(r["declared"], "float64", "4,4"))
+        g = int(r["grid_stride"])
+        grid_depth = unpack_array(r["grid_depth"], r["grid_depth_dtype"], r["grid_depth_shape"], compressed=True)
+        grid_mask = unpack_array(r["grid_mask"], r["grid_mask_dtype"], r["grid_mask_shape"], compressed=True)
+        grid_views.append(View(name=f"{r['scan']}/{r['name']}", pose=declared[-1], depth=grid_depth, mask=grid_mask,
+                               intrinsics=Intrinsics(fx=r["fx"] / g, fy=r["fy"] / g, cx=(r["cx"] - g // 2) / g,
+                                                     cy=(r["cy"] - g // 2) / g, width=grid_depth.shape[1],
+                                                     height=grid_depth.shape[0])))
         f = int(r["stride"])
         depth = unpack_array(r["depth"], r["depth_dtype"], r["depth_shape"], compressed=True)
         window = unpack_array(r["labels"], r["labels_dtype"], r["labels_shape"], compressed=True)
@@ -172,7 +206,8 @@ def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
         view_names=[v.name for v in views],
         pixel_segment=[img.shifted(int(first[j])) for j, img in enumerate(images)],
     )
-    return StoredViews(views, segments, np.array([r["view"] for r in view_rows], dtype=np.int64),
+    return StoredViews(views, segments, np.array(declared).reshape(-1, 4, 4), grid_views,
+                       np.array([r["view"] for r in view_rows], dtype=np.int64),
                        np.array([r["scan"] for r in view_rows], dtype=np.int64), [r["name"] for r in view_rows],
                        np.asarray(seg_ids, dtype=np.int64), np.asarray(objects, dtype=np.int64))
 
