@@ -3,6 +3,10 @@
 # (docs/guide/exports.md shows docs/guide/exports-rerun.png, made with the defaults below).
 #
 #   scripts/screenshot_rerun.sh [BUNDLE] [OUT_PNG]      (defaults: out/sample_bundle, docs/guide/exports-rerun.png)
+#   SOURCE=bag scripts/screenshot_rerun.sh [BUNDLE] [OUT_PNG]      (default OUT_PNG: docs/guide/exports-bag.png)
+#
+# SOURCE=bag exports the ROS 2 bag instead and opens its MCAP file in the same viewer, which reads
+# ROS 2 MCAP itself (no blueprint: the viewer's default layout).
 #
 # Steps: `shadowcorr correspond` and `shadowcorr export --to rrd` in a temporary folder; a
 # blueprint with one 3D view of the objects (fused points and oriented boxes) and the camera
@@ -16,7 +20,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BUNDLE=${1:-out/sample_bundle}
-OUT_PNG=${2:-docs/guide/exports-rerun.png}
+SOURCE=${SOURCE:-rrd}
+OUT_PNG=${2:-docs/guide/exports-$([ "$SOURCE" = bag ] && echo bag || echo rerun).png}
 WAIT_S=${WAIT_S:-30}
 WEB_PORT=${WEB_PORT:-9090}
 GRPC_PORT=${GRPC_PORT:-9876}
@@ -30,7 +35,12 @@ cleanup() {
 trap cleanup EXIT
 
 .venv/bin/shadowcorr correspond "$BUNDLE" --out "$WORK/result.json"
+if [ "$SOURCE" = bag ]; then
+  .venv/bin/shadowcorr export "$WORK/result.json" "$BUNDLE" "$WORK/bag" --to bag
+  INPUTS=("$WORK/bag/bag.mcap")
+else
 .venv/bin/shadowcorr export "$WORK/result.json" "$BUNDLE" "$WORK/scene.rrd" --to rrd
+INPUTS=("$WORK/scene.rrd" "$WORK/view.rbl")
 
 "$PY" - "$WORK/result.json" "$BUNDLE" "$WORK/view.rbl" <<'EOF'
 import json
@@ -63,11 +73,12 @@ view = rrb.Spatial3DView(
 )
 rrb.Blueprint(view, collapse_panels=True).save("shadowcorr", out)
 EOF
+fi
 
 # The rerun binary itself (not the Python launcher), so that its id is the one to stop.
 RERUN_BIN=$("$PY" -c 'import pathlib, rerun_cli; print(pathlib.Path(rerun_cli.__file__).parent / "rerun")')
 BROWSER=/bin/true "$RERUN_BIN" --web-viewer --bind 127.0.0.1 --web-viewer-port "$WEB_PORT" --port "$GRPC_PORT" \
-  -j 1 "$WORK/scene.rrd" "$WORK/view.rbl" >"$WORK/rerun.log" 2>&1 &
+  -j 1 "${INPUTS[@]}" >"$WORK/rerun.log" 2>&1 &
 VIEWER_PID=$!
 for _ in $(seq 50); do
   grep -q "Hosting a web-viewer" "$WORK/rerun.log" && break
