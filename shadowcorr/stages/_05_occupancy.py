@@ -129,7 +129,7 @@ def _background_counts(views: list[View], centres: np.ndarray, offsets: np.ndarr
         inside = np.flatnonzero(in_front & (col >= 0) & (col < width) & (row >= 0) & (row < height))
         pixel = row.reshape(-1)[inside].astype(np.int64) * width + col.reshape(-1)[inside].astype(np.int64)
         measured = view.depth.reshape(-1)[pixel]
-        valid = np.isfinite(measured) & (measured > 0) & (measured <= max_depth)
+        valid = (measured > 0) & (measured <= max_depth)  # False for NaN and infinities too
         depth_here = z.reshape(-1)[inside]
         unlabelled = view.mask.reshape(-1)[pixel] == 0
         # A hole in an object's depth (mask set, no valid depth) says nothing; on the background it is a ray
