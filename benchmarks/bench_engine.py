@@ -1,6 +1,7 @@
 """Per-stage timings of the engine on the real sample scene (median of repeated runs).
 
     python benchmarks/bench_engine.py [--repeats 7] [--cameras 0,2,4,6] [--model PATH] [--device cpu|cuda] [--threads 1]
+                                      [--docs [PATH]]
 
 Prints milliseconds per stage (median wall time of ``result.timings_ms``) for two paths:
   in memory: decoded SceneBundle -> labels (pose refinement, segments, evidence, network, grouping)
@@ -10,12 +11,16 @@ and the median CPU time of the in-memory path (on a shared machine the steadier 
 Targets for a 4-view 1080p scene on one core: pose refinement <= 150 ms; everything else
 <= 150 ms in memory and <= 250 ms from disk.  ``--threads N`` runs the stages with
 ``num_threads = N`` and the network on N torch threads (0: every core).  With ``--device cuda`` the network runs on
-the GPU (every other stage stays on the CPU).
+the GPU (every other stage stays on the CPU).  ``--docs`` also writes the figures as a Markdown table
+(default ``docs/benchmarks/tables/engine.md``, which the documentation's benchmark page includes),
+with the release, the machine and its load average, so that no figure is typed by hand.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import platform
 import statistics
 import sys
 import tempfile
@@ -24,11 +29,13 @@ from pathlib import Path
 
 import torch
 
-from shadowcorr import ShadowCorrConfig, correspond, load_bundle, load_model
+from shadowcorr import ShadowCorrConfig, __version__, correspond, load_bundle, load_model
 from shadowcorr.convert import convert_ue, load_ue_scene
 from shadowcorr.ops import resolve_threads
 
-SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "ue_sample"  # ships with the repository
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "examples" / "ue_sample"  # ships with the repository
+DOCS_TABLE = REPO / "docs" / "benchmarks" / "tables" / "engine.md"
 
 
 def main() -> int:
@@ -40,7 +47,10 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=1, help="num_threads of the configuration and torch's "
                         "threads (0: every core; the service's workers use 1)")
     parser.add_argument("--device", default="cpu", help="torch device of the network: cpu, cuda, cuda:N")
+    parser.add_argument("--docs", nargs="?", const=str(DOCS_TABLE), default=None, metavar="PATH",
+                        help=f"also write the figures to PATH (default {DOCS_TABLE.relative_to(REPO)})")
     args = parser.parse_args()
+    load_before = os.getloadavg()[0]
     config = ShadowCorrConfig(num_threads=args.threads)
     torch.set_num_threads(resolve_threads(args.threads))
     cameras = [int(c) for c in args.cameras.split(",")]
@@ -87,7 +97,43 @@ def main() -> int:
     print(f"{'load_bundle':<20}{statistics.median(loads):>12.1f}")
     print(f"{'on disk -> labels':<20}{statistics.median(disk):>12.1f}   "
           f"({statistics.median(disk) - poses:.1f} without pose refinement; target <= 250)")
+    if args.docs:
+        path = Path(args.docs)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(docs_table(args, stages, totals, cpu, loads, disk, len(result.segments),
+                                   (load_before, os.getloadavg()[0])))
+        print(f"wrote {path}")
     return 0
+
+
+def docs_table(args: argparse.Namespace, stages: dict[str, list[float]], totals: list[float], cpu: list[float],
+               loads: list[float], disk: list[float], segments: int, load: tuple[float, float]) -> str:
+    """The run's figures as Markdown: medians per stage and per path, with what was measured where."""
+    med = statistics.median
+    poses = med(stages.get("poses", [0.0]))
+    threads = args.threads if args.threads else "every"
+    lines = [
+        f"ShadowCorr {__version__}; {platform.machine()} with {os.cpu_count()} cores, {platform.python_implementation()} "
+        f"{platform.python_version()}, torch {torch.__version__}, network on {args.device}; "
+        f"{threads} thread(s); load average {load[0]:.1f} before and {load[1]:.1f} after the run.  ",
+        f"The real sample scene, cameras {args.cameras} ({segments} segments); medians of {args.repeats} runs "
+        f"after a warm-up: `python benchmarks/bench_engine.py --repeats {args.repeats} --threads {args.threads} --docs`.",
+        "",
+        "| stage | median ms |",
+        "|---|---|",
+    ]
+    lines += [f"| {k} | {med(v):.1f} |" for k, v in stages.items() if k != "total"]
+    lines += [
+        "",
+        "| path | median ms |",
+        "|---|---|",
+        f"| in memory → labels | {med(totals):.1f} ({med(totals) - poses:.1f} without pose refinement) |",
+        f"| in memory → labels, CPU time | {med(cpu):.1f} |",
+        f"| `load_bundle` | {med(loads):.1f} |",
+        f"| on disk → labels | {med(disk):.1f} ({med(disk) - poses:.1f} without pose refinement) |",
+        "",
+    ]
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
