@@ -115,6 +115,7 @@ class StoredViews:
     segments: Segments
     declared: np.ndarray  # (V, 4, 4) the poses their scans declared
     grid_views: list[View]  # the same views on the pose stage's grid, at their declared poses (registration)
+    strides: np.ndarray  # (V,) full-image pixels per summary pixel
     view_ids: np.ndarray  # (V,) map id of each view
     view_scans: np.ndarray  # (V,) the scan that added it
     view_names: list[str]  # as named in their scan
@@ -143,7 +144,7 @@ class StoredViews:
                             camera_center=seg.camera_center[mine], optical_axis=seg.optical_axis[mine],
                             view_names=[seg.view_names[j] for j in keep], pixel_segment=images)
         return StoredViews([self.views[j] for j in keep], segments, self.declared[keep],
-                           [self.grid_views[j] for j in keep], self.view_ids[keep],
+                           [self.grid_views[j] for j in keep], self.strides[keep], self.view_ids[keep],
                            self.view_scans[keep], [self.view_names[j] for j in keep], self.segment_ids[mine],
                            self.segment_objects[mine])
 
@@ -207,6 +208,7 @@ def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
         pixel_segment=[img.shifted(int(first[j])) for j, img in enumerate(images)],
     )
     return StoredViews(views, segments, np.array(declared).reshape(-1, 4, 4), grid_views,
+                       np.array([r["stride"] for r in view_rows], dtype=np.int64),
                        np.array([r["view"] for r in view_rows], dtype=np.int64),
                        np.array([r["scan"] for r in view_rows], dtype=np.int64), [r["name"] for r in view_rows],
                        np.asarray(seg_ids, dtype=np.int64), np.asarray(objects, dtype=np.int64))
