@@ -84,7 +84,7 @@ def test_graph_methods_find_the_spheres(field, model, method):
     assert same_partition(result.labels, truth_of(result)), (result.labels, truth_of(result))
     assert {s.assignment for s in result.segments} == {"evidence"}
     # Every segment sits with its own sphere, with evidence on all sides: each is sure of it
-    # (fused's flag of doubtful segments, support < 0.823, flags none).
+    # (fused's flag of doubtful segments, support below check_below, flags none).
     assert min(s.support for s in result.segments) > 0.9, [s.support for s in result.segments]
     assert "grouping" in result.timings_ms and "surface_evidence" in result.timings_ms
     assert (result.model is not None) == (method == "fused")

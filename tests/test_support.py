@@ -64,3 +64,51 @@ def test_the_benchmarks_calibration_error_is_the_binned_gap():
     expected = 10 / 14 * abs(9 / 10 - 9.5 / 10) + 4 / 14 * abs(2 / 4 - 1.0 / 4)
     assert bench.calibration_error([first, second]) == pytest.approx(expected)
     assert np.isnan(bench.calibration_error([]))
+
+
+def _two_groups_and_a_stray():
+    """Four segments in three views: 0 (view 0) and 1 (view 1) grouped, 2 (view 2) alone but
+    landing on 0 and 0 on it, 3 (view 2) alone without evidence.  100 sample points each."""
+    from shadowcorr.stages._03_surface_evidence import SurfaceEvidence
+    from shadowcorr.stages._09_grouping import EvidenceGroups, SegmentGraph
+
+    on_mask = np.zeros((4, 3), dtype=np.int64)
+    on_mask[0, 1], on_mask[0, 2], on_mask[1, 0], on_mask[2, 0] = 90, 70, 90, 60
+    source, target, count = np.array([0, 1, 0, 2]), np.array([1, 0, 2, 0]), np.array([80, 80, 60, 50])
+    samples = np.full(4, 100)
+    surface = SurfaceEvidence(samples, np.zeros((400, 3), np.float32), on_mask.copy(), on_mask, source, target, count)
+    none = np.zeros(0, dtype=np.int64)
+    graph = SegmentGraph(np.array([0, 1, 2, 2]), np.array([1, 1, 1, 2]), surface, none, none, np.zeros(0), np.zeros(0))
+    return EvidenceGroups(np.array([0, 0, 1, 2]), graph, np.zeros(4, dtype=bool))
+
+
+def test_support_features_read_the_group_and_its_rivals():
+    from shadowcorr.stages import support_features
+
+    x = support_features(_two_groups_and_a_stray(), ShadowCorrConfig())
+    column = {name: x[:, i] for i, name in enumerate(SUPPORT_FEATURES)}
+    assert x.shape == (4, len(SUPPORT_FEATURES))
+    # Segment 0 lands in views 1 and 2; its group holds nothing in view 2.
+    np.testing.assert_array_equal(column["landing_views"], [2, 1, 1, 0])
+    np.testing.assert_array_equal(column["missing_views"], [1, 0, 1, 0])
+    np.testing.assert_allclose(column["group_size"], np.log([2, 2, 1, 1]))
+    # Evidence with one other group (0 and 2 land on each other), none for 1's and 3's.
+    np.testing.assert_allclose(column["candidates"], np.log1p([1, 0, 1, 0]))
+    # 2's group (100 points) against the group it is linked to (200): the smaller one.
+    assert column["pull_size"][2] == pytest.approx(np.log(101 / 201))
+    assert column["pull_size"][0] == pytest.approx(np.log(201 / 101))
+    assert column["pull_size"][3] == 0.0
+    # 60 of 0's 70 landings in view 2 fall on the other group there, none of 1's: their group's mean is 3/7.
+    np.testing.assert_allclose(column["group_other_share"][:2], [3 / 7, 3 / 7])
+    assert column["group_other_share"][2] == pytest.approx(50 / 60)  # 50 of its 60 landings in view 0 on 0
+
+
+def test_a_calibration_on_some_features_reads_them_by_name():
+    names = ("candidates", "margin", "group_other_share")
+    rng = np.random.default_rng(1)
+    full = rng.normal(size=(50, len(SUPPORT_FEATURES)))
+    picked = full[:, [SUPPORT_FEATURES.index(n) for n in names]]
+    calibration = SupportCalibration(names, np.zeros(3), np.ones(3), np.array([-1.0, 2.0, -0.5]), 0.3, 0.5, "t")
+    expected = 1.0 / (1.0 + np.exp(-(0.3 + picked @ np.array([-1.0, 2.0, -0.5]))))
+    np.testing.assert_allclose(calibration.probability(full), expected)
+    np.testing.assert_allclose(calibration.probability(picked), expected)

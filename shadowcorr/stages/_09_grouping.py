@@ -343,13 +343,16 @@ class _GroupLinks:
     other_volume: np.ndarray  # (S,) the highest pooled volumetric similarity to one other group (0 without)
 
 
-def _group_links(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig) -> _GroupLinks:
+def _group_links(graph: SegmentGraph, labels: np.ndarray, config: ShadowCorrConfig,
+                 pairs: _PairLinkage | None = None) -> _GroupLinks:
     """For every segment, the linkage (as between groups) of the segment alone to the rest of
-    its own group, and to every other group it has evidence with (:func:`_segment_group_linkage`)."""
+    its own group, and to every other group it has evidence with (:func:`_segment_group_linkage`;
+    ``pairs``: its result for these labels, where the caller has it already)."""
     s = graph.num_segments
     _, group = np.unique(labels, return_inverse=True)
     k = int(group.max()) + 1
-    pairs = _segment_group_linkage(graph, group, config)
+    if pairs is None:
+        pairs = _segment_group_linkage(graph, group, config)
     seg, own, value = pairs.segment, pairs.own, pairs.value
     hits_out, trials_out, volume, mass = pairs.hits_out, pairs.trials_out, pairs.volume, pairs.mass
     per_view = pairs.per_view
