@@ -539,11 +539,17 @@ def level_table(summary: dict[str, dict[str, dict[str, Any]]], rows: list[Condit
 
 
 def render_tables(summary: dict[str, dict[str, dict[str, Any]]], conditions: list[Condition],
-                  methods: list[str]) -> str:
-    """Markdown: one table per metric, rows = conditions, columns = methods, plus the support-flag table."""
+                  methods: list[str], metrics: Sequence[str] | None = None) -> str:
+    """Markdown: one table per metric, rows = conditions, columns = methods, plus the support-flag table.
+
+    With ``metrics`` (keys of :data:`METRICS`), only those metrics' tables after the level table,
+    and neither the flag nor the compounding tables (a documentation page that shows one figure).
+    """
     rows = [c for c in conditions if c.name in summary]
     lines: list[str] = level_table(summary, rows, methods)
     for key, title, fmt in METRICS:
+        if metrics is not None and key not in metrics:
+            continue
         lines += [f"### {title}", "", "| condition | scenes | " + " | ".join(methods) + " |",
                   "|---|---|" + "---|" * len(methods)]
         for c in rows:
@@ -551,6 +557,8 @@ def render_tables(summary: dict[str, dict[str, dict[str, Any]]], conditions: lis
             n = max((cells[m]["runs"] for m in methods if m in cells), default=0)
             lines.append(f"| {c.name} | {n} | " + " | ".join(format_cell(cells.get(m), key, fmt) for m in methods) + " |")
         lines.append("")
+    if metrics is not None:
+        return "\n".join(lines + ["Conditions:", ""] + [f"- `{c.name}`: {c.description}" for c in rows]) + "\n"
     thresholds = ", ".join(f"{m} {support_threshold(m):.3g}" for m in methods)
     lines += [f"### support as a flag for wrong segments (support below: {thresholds}): precision / recall (%), "
               "and the support's expected calibration error", "",
@@ -663,14 +671,29 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                    "documentation's quality page includes)")
     p.add_argument("--docs-from", metavar="OUT", default=None, help="write OUT/table.md of a finished run to "
                    "the --docs path and exit (evaluates nothing)")
+    p.add_argument("--docs-metrics", default=None, metavar="KEYS",
+                   help="comma-separated metrics (" + ", ".join(m[0] for m in METRICS) + ") the --docs file "
+                   "keeps: their tables after the level table, without the flag and compounding tables")
     return p.parse_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
+    docs_metrics = [k.strip() for k in args.docs_metrics.split(",")] if args.docs_metrics else None
+    unknown = sorted(set(docs_metrics or ()) - {m[0] for m in METRICS})
+    if unknown:
+        print(f"unknown --docs-metrics: {', '.join(unknown)}", file=sys.stderr)
+        return 2
     if args.docs_from:
         target = Path(args.docs) if args.docs else DOCS_TABLE
-        print(f"wrote {write_docs_table((Path(args.docs_from) / 'table.md').read_text(), target)}")
+        text = (Path(args.docs_from) / "table.md").read_text()
+        if docs_metrics:
+            done = json.loads((Path(args.docs_from) / "summary.json").read_text())
+            by_name = {c.name: c for c in all_conditions(False, [*SYNTH_RIGS, *REAL_RIGS])}
+            header = text[:text.index("###")]  # the run's command and counts
+            text = header + render_tables(done["cells"], [by_name[n] for n in done["conditions"]], done["methods"],
+                                          docs_metrics)
+        print(f"wrote {write_docs_table(text, target)}")
         return 0
     n_scenes = args.scenes if args.scenes is not None else (3 if args.quick else 30)
     repeats = args.real_repeats if args.real_repeats is not None else (2 if args.quick else 5)
@@ -744,7 +767,8 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"on {args.workers} idle cores), generation {t_generated - t_start:.0f} s\n\n")
     (out / "table.md").write_text(header + table)
     if args.docs:
-        print(f"wrote {write_docs_table(header + table, Path(args.docs))}")
+        docs_table = table if docs_metrics is None else render_tables(summary, conditions, methods, docs_metrics)
+        print(f"wrote {write_docs_table(header + docs_table, Path(args.docs))}")
     print()
     print(header + table)
     print(f"wrote {out / 'records.jsonl'}, {out / 'summary.json'}, {out / 'table.md'}")
