@@ -422,7 +422,8 @@ def _register(local: SceneBundle, new: Segments, stored: StoredViews | None, con
     keys = [(v.name, latest) for v in local.views] + (
         [(name, int(scan)) for name, scan in zip(stored.view_names, stored.view_scans)] if stored is not None else [])
     order = sorted(range(len(keys)), key=keys.__getitem__)
-    _, ordered = refine_poses(dataclasses.replace(local, views=[[*local.views, *grid][k] for k in order]), config)
+    _, ordered = refine_poses(dataclasses.replace(local, views=[[*local.views, *grid][k] for k in order]), config,
+                              view_order="listed")
     reports: list[ViewPoseCorrection] = [ordered[0]] * len(order)
     for k, report in zip(order, ordered):
         reports[k] = report

@@ -584,14 +584,37 @@ def _groups(n: int, edges: list[_Pair]) -> np.ndarray:
 
 
 def refine_poses(
-    bundle: SceneBundle, config: ShadowCorrConfig | None = None
+    bundle: SceneBundle, config: ShadowCorrConfig | None = None, *, view_order: str = "name"
 ) -> tuple[SceneBundle, list[ViewPoseCorrection]]:
     """Register the views to each other and correct their poses (see the module docstring).
 
     Returns a copy of the bundle with refined poses (views that could not be refined
     keep theirs) and one report per view, in view order.  The input is not modified.
+    With ``view_order="name"`` the views are registered in one canonical order, sorted by
+    name, so the same views listed in another order get the same corrections;
+    ``"listed"`` registers them as listed (for a caller that orders them canonically itself,
+    such as a site map, whose views' names repeat across scans).
     """
     config = config or ShadowCorrConfig()
+    if view_order not in ("name", "listed"):
+        raise ValueError(f"view_order must be 'name' or 'listed', not {view_order!r}")
+    # Under depth noise, registering a pair one way and the other converges to slightly different
+    # motions, and pairs are chosen and dropped in view order; in the listing order, the same views
+    # listed differently could be corrected differently (and labelled differently downstream).
+    order = list(range(len(bundle.views)))
+    if view_order == "name":
+        order.sort(key=lambda k: bundle.views[k].name)
+    if bundle.point_segments is not None or order == list(range(len(bundle.views))):
+        return _refine_in_order(bundle, config)
+    refined, reports = _refine_in_order(dataclasses.replace(bundle, views=[bundle.views[k] for k in order]), config)
+    listed = np.argsort(order)
+    return (dataclasses.replace(refined, views=[refined.views[i] for i in listed]),
+            [reports[i] for i in listed])
+
+
+def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
+                     ) -> tuple[SceneBundle, list[ViewPoseCorrection]]:
+    """:func:`refine_poses` with the views in the bundle's order."""
     scale = unit_scale(bundle.units, config.units)
     n = len(bundle.views)
     identity = np.eye(4).tolist()
