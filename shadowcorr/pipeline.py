@@ -97,21 +97,19 @@ def cut_segments(bundle: SceneBundle, config: ShadowCorrConfig, timings: dict[st
 
 
 def prepare_segments(bundle: SceneBundle, segments: Segments, config: ShadowCorrConfig,
-                     timings: dict[str, float] | None = None, *, pixel_scale: list[float] | None = None
-                     ) -> VoxelScene:
+                     timings: dict[str, float] | None = None) -> VoxelScene:
     """Stages 03-06 on segments already cut: surface evidence, shells, shadows, the voxel scene.
 
     ``bundle`` supplies what the cross-view evidence reads of every view of ``segments``
     (depth, intrinsics, pose), in the same order; the segments may come from elsewhere than its
     masks (the site map adds the stored segments of earlier scans).  ``segments.pixel_segment``
-    is released once the surface evidence has read it.  ``pixel_scale``: per view, how many
-    full-image pixels one pixel of its images spans (downsampled views; None: all full size).
+    is released once the surface evidence has read it.
     """
     timings = {} if timings is None else timings
     surface = None
     if config.method in SURFACE_METHODS:  # 03
         t0 = time.perf_counter()
-        surface = surface_evidence(bundle, segments, config, pixel_scale)
+        surface = surface_evidence(bundle, segments, config)
         timings["surface_evidence"] = _ms_since(t0)
         _check_stage_time(timings, config)
     segments.pixel_segment = None  # the label images serve the surface evidence only: free them now

@@ -212,8 +212,7 @@ class SiteMap:
             stored = stored.subset([w for w in range(len(stored.views)) if w not in twins])
         if stored is not None:
             run = SceneBundle(units=config.units, views=[*local.views, *stored.views], name=local.name)
-            scene = prepare_segments(run, join_segments(new, stored.segments), config, timings,
-                                     pixel_scale=[1.0] * len(local.views) + stored.strides.astype(float).tolist())
+            scene = prepare_segments(run, join_segments(new, stored.segments), config, timings)
         else:
             scene = prepare_segments(local, new, config, timings)
         # Which stored segments the scan's own views see (their surface is visible there): the

@@ -115,7 +115,6 @@ class StoredViews:
     segments: Segments
     declared: np.ndarray  # (V, 4, 4) the poses their scans declared
     grid_views: list[View]  # the same views on the pose stage's grid, at their declared poses (registration)
-    strides: np.ndarray  # (V,) full-image pixels per summary pixel
     view_ids: np.ndarray  # (V,) map id of each view
     view_scans: np.ndarray  # (V,) the scan that added it
     view_names: list[str]  # as named in their scan
@@ -138,13 +137,14 @@ class StoredViews:
         for j, old in enumerate(keep):
             image = seg.pixel_segment[old]
             window = np.where(image.window >= 0, image.window - old_first[old] + new_first[j], -1)
-            images.append(SegmentImage(window.astype(image.window.dtype), image.top, image.left, image.shape))
+            images.append(SegmentImage(window.astype(image.window.dtype), image.top, image.left, image.shape,
+                                       image.pixel_scale))
         segments = Segments(points=points, lengths=seg.lengths[mine], view=view, instance=seg.instance[mine],
                             component=seg.component[mine], num_pixels=seg.num_pixels[mine],
                             camera_center=seg.camera_center[mine], optical_axis=seg.optical_axis[mine],
                             view_names=[seg.view_names[j] for j in keep], pixel_segment=images)
         return StoredViews([self.views[j] for j in keep], segments, self.declared[keep],
-                           [self.grid_views[j] for j in keep], self.strides[keep], self.view_ids[keep],
+                           [self.grid_views[j] for j in keep], self.view_ids[keep],
                            self.view_scans[keep], [self.view_names[j] for j in keep], self.segment_ids[mine],
                            self.segment_objects[mine])
 
@@ -179,7 +179,7 @@ def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
         if window.size and inst.size:
             mask[top:top + window.shape[0], left:left + window.shape[1]] = np.where(window >= 0, inst[window], 0)
         views.append(View(name=f"{r['scan']}/{r['name']}", pose=pose, intrinsics=k, depth=depth, mask=mask))
-        images.append(SegmentImage(np.array(window), top, left, (h, w)))
+        images.append(SegmentImage(np.array(window), top, left, (h, w), f))
         for s in rows:
             p = unpack_array(s["points"], s["points_dtype"], s["points_shape"])
             points.append(p)
@@ -208,7 +208,6 @@ def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
         pixel_segment=[img.shifted(int(first[j])) for j, img in enumerate(images)],
     )
     return StoredViews(views, segments, np.array(declared).reshape(-1, 4, 4), grid_views,
-                       np.array([r["stride"] for r in view_rows], dtype=np.int64),
                        np.array([r["view"] for r in view_rows], dtype=np.int64),
                        np.array([r["scan"] for r in view_rows], dtype=np.int64), [r["name"] for r in view_rows],
                        np.asarray(seg_ids, dtype=np.int64), np.asarray(objects, dtype=np.int64))

@@ -36,6 +36,7 @@ class SegmentImage:
     top: int  # the window's first row and column in the frame
     left: int
     shape: tuple[int, int]  # the whole frame (H, W)
+    pixel_scale: int = 1  # pixels of the camera's full image one pixel here spans (a site map's summary: its stride)
 
     @classmethod
     def from_blobs(cls, blobs: "Blobs") -> "SegmentImage":
@@ -53,7 +54,7 @@ class SegmentImage:
         else:
             window = window.copy()
         window[window >= 0] += first_index
-        return SegmentImage(window, self.top, self.left, self.shape)
+        return SegmentImage(window, self.top, self.left, self.shape, self.pixel_scale)
 
     def at(self, row: np.ndarray, col: np.ndarray) -> np.ndarray:
         """Segment index at frame pixels (``row``, ``col``) inside the frame; -1 off the window."""

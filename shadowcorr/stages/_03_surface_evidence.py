@@ -132,13 +132,11 @@ def _nearest_label(image: SegmentImage, row: np.ndarray, col: np.ndarray, target
     return out
 
 
-def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorrConfig,
-                     pixel_scale: list[float] | None = None) -> SurfaceEvidence:
+def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorrConfig) -> SurfaceEvidence:
     """Project every segment's sample points into every other view (see the module docstring).
 
-    ``pixel_scale``: per view, how many pixels of the camera's full image one pixel of its image
-    here spans (a downsampled image, such as a site map's stored view); ``pixel_tolerance`` counts
-    full-image pixels.  None: every image is full size."""
+    ``pixel_tolerance`` counts pixels of the camera's full image: on a downsampled view (a site
+    map's stored view, :attr:`SegmentImage.pixel_scale` > 1) it spans fewer of the view's pixels."""
     s, num_views = segments.num_segments, len(bundle.views)
     if segments.pixel_segment is None or s == 0:
         return SurfaceEvidence.empty(s, num_views)
@@ -188,8 +186,8 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         src = seg[rows]
         target = image.at(row, col)
         if config.pixel_tolerance > 0:
-            tolerance_px = config.pixel_tolerance if pixel_scale is None else max(
-                1, int(round(config.pixel_tolerance / pixel_scale[j])))
+            tolerance_px = config.pixel_tolerance if image.pixel_scale == 1 else max(
+                1, int(round(config.pixel_tolerance / image.pixel_scale)))
             target = _nearest_label(image, row, col, target, tolerance_px)
         landed = target >= 0
         key, count = unique_keys(src[landed] * s + target[landed], return_counts=True)
