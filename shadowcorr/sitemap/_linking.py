@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..bundle import SceneBundle, View
+from ..bundle import View
 from ..result import ViewPoseCorrection
 from ._summaries import StoredViews, ViewSummary
 
