@@ -245,24 +245,30 @@ def _largest_components(cell: np.ndarray, owner: np.ndarray, weight: np.ndarray)
     if idx.size == 0:
         return kept
     key, steps = _linear_keys(owner[idx], cell[idx], margin=1)
+    # The graph is built on the cells in key order: every shifted copy of the sorted keys is sorted
+    # too, and a search for sorted needles walks the keys in order (several times faster than for
+    # needles in arbitrary order).
     order = np.argsort(key)
+    idx = idx[order]
     sorted_key = key[order]
     rows, cols = [], []
     for dx, dy, dz in _HALF_NEIGHBOURS:  # each undirected edge once
-        target = key + (dx * steps[0] + dy * steps[1] + dz * steps[2])
+        target = sorted_key + (dx * steps[0] + dy * steps[1] + dz * steps[2])
         j = np.minimum(np.searchsorted(sorted_key, target), idx.size - 1)
         hit = sorted_key[j] == target
         rows.append(np.flatnonzero(hit))
-        cols.append(order[j[hit]])
+        cols.append(j[hit])
     r, c = np.concatenate(rows), np.concatenate(cols)
     graph = coo_matrix((np.ones(r.size, dtype=np.int8), (r, c)), shape=(idx.size, idx.size))
     _, component = connected_components(graph, directed=False)
     mass = np.bincount(component, weights=weight[idx])
     component_owner = np.zeros(mass.size, dtype=np.int64)
     component_owner[component] = owner[idx]
-    # per owner the heaviest component: components sorted by owner, then by falling mass (one argsort of
-    # owner + a fraction below one half that falls as the mass rises)
-    ranked = np.argsort(component_owner - mass / (2.0 * max(float(mass.max()), 1e-300)))
+    # per owner the heaviest component; between equal masses the one holding the lowest cell, so the
+    # choice depends on neither the order of the graph's nodes nor the sort's stability
+    lowest_cell = np.full(mass.size, cell.shape[0], dtype=np.int64)
+    np.minimum.at(lowest_cell, component, idx)
+    ranked = np.lexsort((lowest_cell, -mass, component_owner))
     first = ranked[np.r_[True, component_owner[ranked][1:] != component_owner[ranked][:-1]]]
     best = np.zeros(mass.size, dtype=bool)
     best[first] = True
@@ -305,12 +311,14 @@ def _near_samples(points: np.ndarray, obj: np.ndarray, samples: SolidSamples) ->
     sample_key, steps = _linear_keys(samples.object, samples.lattice, 2, low, high)
     sample_key = np.sort(sample_key)
     key, _ = _linear_keys(obj[within], q[within], 2, low, high)  # neighbours stay on the grid
+    order = np.argsort(key)  # sorted needles: each search walks the samples' keys in order
+    key = key[order]
     found = np.zeros(within.size, dtype=bool)
     for dx, dy, dz in _NEIGHBOURS:
         target = key + (dx * steps[0] + dy * steps[1] + dz * steps[2])
         j = np.minimum(np.searchsorted(sample_key, target), sample_key.size - 1)
         found |= sample_key[j] == target
-    near[within] = found
+    near[within[order]] = found
     return near
 
 
