@@ -141,11 +141,15 @@ def test_revisions_follow_the_new_evidence_only() -> None:
     kinds = [(e.kind, e.object, e.into, e.segments, e.moved) for e in plan.events]
     assert ("observed", 10, None, [0], []) in kinds and ("created", 13, None, [1], []) in kinds
     assert ("merged", 11, 10, [0], [5]) in kinds and ("split", 10, 13, [1], [4]) in kinds
-    # Without margin the stored segment stays, and the new segment joins the object it lies with.
+    # With min_margin, a stored segment without that margin stays, and the new segment joins the
+    # object it lies with.
     weak = margin.copy()
     weak[4] = -0.1
-    plan = revise(np.array([0, 1, 0, 0, 1, 0, 2]), new, stored, weak, sizes, first_new_object=13)
+    plan = revise(np.array([0, 1, 0, 0, 1, 0, 2]), new, stored, weak, sizes, first_new_object=13, min_margin=0.0)
     assert plan.segment_object.tolist()[:5] == [10, 10, 10, 10, 10] and plan.created == []
+    # Without it (the default) the run's group decides, whatever the margin: as one run of all the views.
+    plan = revise(np.array([0, 1, 0, 0, 1, 0, 2]), new, stored, weak, sizes, first_new_object=13)
+    assert plan.segment_object.tolist() == [10, 13, 10, 10, 13, 10, 12] and plan.created == [13]
     # An object without a home whose segments go two ways is split twice and, left empty, retired.
     group = np.array([0, 1, 0, 1, 0, 0, 1, 1])
     new = np.array([True, True, False, False, False, False, False, False])

@@ -88,8 +88,8 @@ class SiteMap:
     evidence through the network), and the per-view constraints apply.  The run's groups are
     then read against the map's objects: the scan's segments take the ids of the objects they
     join, and a stored segment changes object only where the scan brings new evidence about it -
-    its group holds new segments, or a view of the scan sees it - and its evidence margin exceeds
-    ``min_margin`` (``shadowcorr.sitemap._revision`` has the rules).  Every revision is an event -
+    its group holds new segments, or a view of the scan sees it - and, where ``min_margin`` is set,
+    its evidence margin exceeds it (``shadowcorr.sitemap._revision`` has the rules).  Every revision is an event -
     ``created``, ``observed``, ``merged``, ``split``, ``retired`` - naming the scan, views and
     segments that caused it and the weakest evidence margin among them.  One update is one
     transaction: a writer killed mid-update leaves the map as the last update left it.
@@ -99,21 +99,26 @@ class SiteMap:
     its own (a ``config`` that sets anything but run-time limits and threads to another value is
     refused).
     ``model``: the network; the packaged model by default, loaded on the first update.
+    ``min_margin``: None (the default) lets a stored segment follow the run wherever the scan
+    brings new evidence about it, as one run of all the views would place it; a number keeps a
+    stored segment whose evidence margin in the run does not exceed it where it is (fewer id
+    changes, at the cost of agreeing less with that one run).
     ``wait_s``: how long :meth:`add` waits for another writer before :class:`MapBusyError`.
     """
 
     def __init__(self, path: str | Path, config: ShadowCorrConfig | None = None, *, model: Model | None = None,
-                 create: bool = True, max_linked_views: int = 16, min_margin: float = 0.0, wait_s: float = 0.0):
+                 create: bool = True, max_linked_views: int = 16, min_margin: float | None = None,
+                 wait_s: float = 0.0):
         if not isinstance(max_linked_views, int) or max_linked_views < 1:
             raise ValueError(f"max_linked_views must be a whole number >= 1, got {max_linked_views!r}")
-        if not np.isfinite(min_margin):
-            raise ValueError(f"min_margin must be finite, got {min_margin!r}")
+        if min_margin is not None and not np.isfinite(min_margin):
+            raise ValueError(f"min_margin must be finite or None, got {min_margin!r}")
         if wait_s < 0:
             raise ValueError(f"wait_s must be >= 0, got {wait_s!r}")
         if config is not None and config.method != "fused":
             raise ValueError(f"a site map links scans with the 'fused' method's evidence, not {config.method!r}")
         self.max_linked_views = max_linked_views
-        self.min_margin = float(min_margin)
+        self.min_margin = None if min_margin is None else float(min_margin)
         self.wait_s = float(wait_s)
         self._model = model
         self._store = MapStore(path, create=create)

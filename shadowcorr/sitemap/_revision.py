@@ -14,8 +14,8 @@ already belong to:
    object most of those belong to.
 3. **Revisions.**  A stored segment in a group that carries new evidence - it holds new segments,
    or stored segments that the scan's views see - whose owner is another object moves there
-   when its evidence margin in the run exceeds ``min_margin``; a group of such stored segments
-   without an owner becomes a new object.  When every stored
+   (where ``min_margin`` is set: only when its evidence margin in the run exceeds it); a group of
+   such stored segments without an owner becomes a new object.  When every stored
    segment of an object that lost its home moves to one object, the two were one rock:
    ``merged`` (the owner survives, the other id is retired and all its segments, in views
    the run did not load too, take the survivor's id).  Otherwise each move is a ``split`` of
@@ -26,7 +26,11 @@ carving the shadows, its shadows in the voxels) even where none of its own segme
 segment's group; with the whole neighbourhood in the run, the map then takes the run's partition
 as one run of all those views would give it, whatever the order the scans came in.  Stored
 segments that no view of the scan sees never change: what the run re-read of evidence already
-in the map is not new evidence.  Nor is a revisit: a new segment that repeats a
+in the map is not new evidence.  The margin is no reason to stay by default: a segment the run's
+per-view constraints put in a group other than the one its linkage prefers (a negative margin,
+e.g. a merged mask over two rocks) is put there by one run of all the views too, and a map that
+kept it where it was disagreed with that run (on the real scene under the ``field`` errors, one
+such segment in 5 of 12 orders and draws).  Nor is a revisit: a new segment that repeats a
 stored one (the same camera, the same pixels; see ``_linking.revisits``) takes that segment's
 id and counts, for the homes, as a stored segment of it; only the scan's other segments are
 new evidence.  Nothing here reads ground truth.
@@ -64,14 +68,15 @@ class RevisionPlan:
 
 
 def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, margin: np.ndarray,
-           segments_in_map: dict[int, int], first_new_object: int, min_margin: float = 0.0,
+           segments_in_map: dict[int, int], first_new_object: int, min_margin: float | None = None,
            repeats: np.ndarray | None = None, seen: np.ndarray | None = None) -> RevisionPlan:
     """Object ids for the segments of one run (see the module docstring).
 
     ``group``: the run's group of each segment; ``is_new``: the segment belongs to the scan being
     added; ``stored_object``: the current object of each stored segment (ignored for new ones);
     ``margin``: each segment's evidence margin in the run (its group's linkage over the best
-    alternative); ``segments_in_map``: how many segments each object present in the run has in
+    alternative; a stored segment moves only when it exceeds ``min_margin``, where that is not
+    None); ``segments_in_map``: how many segments each object present in the run has in
     the whole map (to tell when one is left empty); ``first_new_object``: the id a created
     object gets first; ``repeats``: for each new segment that repeats a stored one, that one's
     object (-1 elsewhere); ``seen``: the stored segments a view of the scan sees (None: none).
@@ -108,7 +113,7 @@ def revise(group: np.ndarray, is_new: np.ndarray, stored_object: np.ndarray, mar
     has_new = np.bincount(group_of[evidence], minlength=num_groups) > 0
     if seen is not None:
         has_new |= np.bincount(group_of[np.asarray(seen, dtype=bool) & ~is_new], minlength=num_groups) > 0
-    movable = ~is_new & (margin > min_margin)
+    movable = ~is_new if min_margin is None else ~is_new & (margin > min_margin)
     target = owner.copy()
     next_object = first_new_object
     created: list[int] = []

@@ -5,8 +5,9 @@ intrinsics and image size; its depth and its image of segment indices read every
 pixel per axis (the pixel at ``stride * i + stride // 2``), so that the long side keeps at most
 :data:`SUMMARY_SIDE` pixels; its depth (float32) and mask on the pixels pose registration samples
 (stage 01's grid of about 20 000 pixels), so that a stored view is registered from exactly what
-its full image would give; and per segment its points averaged on the downsampling grid
-(``downsample_size``).  Read back, a summary is an ordinary
+its full image would give; and per segment its points averaged on a grid of half the downsampling
+cell (``downsample_size / POINT_CELL_DIVISOR``: the run averages them again on the downsampling
+grid itself).  Read back, a summary is an ordinary
 :class:`~shadowcorr.bundle.View` with the coarser image's intrinsics, and its segments are
 ordinary :class:`~shadowcorr.stages.Segments`: the stages that link a new scan to the map
 read stored views exactly as they read the scan's own (their masks are coarser, their points
@@ -100,9 +101,19 @@ def summarize_views(bundle: SceneBundle, segments: Segments, images: list[Segmen
     return out
 
 
+#: Stored points are averaged on a grid this many times finer than ``downsample_size``.  A stored
+#: view moves whenever a later registration corrects it, and the shells of a run average its
+#: points again on the downsampling grid, whose cells no longer line up with the ones they were
+#: averaged in: averages of 2-unit cells, re-averaged after a turn of a degree, gave other shells
+#: than the full points and, on the real scene under the ``field`` errors, another partition than
+#: one run of all the views (98.9 agreement in two orders of the 3rd draw; 100 with this).
+POINT_CELL_DIVISOR = 2
+
+
 def segment_points(segments: Segments, cell: float) -> list[np.ndarray]:
-    """Each segment's points averaged per ``cell`` grid cell, float32 (what the map keeps of them)."""
-    pts, seg = voxel_downsample(segments.points, segments.segment_index, cell)
+    """Each segment's points averaged per ``cell / POINT_CELL_DIVISOR`` grid cell, float32 (what the
+    map keeps of them; ``cell`` is the downsampling cell, ``downsample_size``)."""
+    pts, seg = voxel_downsample(segments.points, segments.segment_index, cell / POINT_CELL_DIVISOR)
     counts = np.bincount(seg, minlength=segments.num_segments)
     return np.split(pts.astype(np.float32), np.cumsum(counts)[:-1])
 
