@@ -150,17 +150,23 @@ def _walk(labels: np.ndarray, z: np.ndarray, dy: int, dx: int, gap: int
     border = (here >= 0) & (here != ahead)
     rows, cols = np.divmod(np.flatnonzero(border), border.shape[1])  # ten times faster than a 2D np.nonzero
     cols = cols + max(0, -dx)
-    own = labels[rows, cols].astype(np.int64)
-    # Walk all border pixels in step; the ones that reach a segment (or the image's edge) drop out.
+    flat_labels = np.ascontiguousarray(labels).reshape(-1)
+    start = rows * w + cols
+    own = flat_labels.take(start).astype(np.int64)
+    # Steps each border pixel can take before it leaves the window along the direction.
+    room = np.full(rows.size, gap + 1, dtype=np.int64)
+    for offset, position, size in ((dy, rows, h), (dx, cols, w)):
+        if offset:
+            room = np.minimum(room, (size - 1 - position) if offset > 0 else position)
+    # Walk all border pixels in step (on flat pixel indices); the ones that reach a segment (or the
+    # window's edge) drop out.
     walkers = np.arange(rows.size)
     found_at, found_other, found_d = [], [], []
     for d in range(1, gap + 2):  # up to `gap` unlabelled pixels, then the other segment
-        r, c = rows[walkers] + d * dy, cols[walkers] + d * dx
-        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-        walkers, r, c = walkers[inside], r[inside], c[inside]
-        value = labels[r, c]
+        walkers = walkers[room.take(walkers) >= d]
+        value = flat_labels.take(start.take(walkers) + d * (dy * w + dx))
         reached = value >= 0
-        other = reached & (value != own[walkers])  # the own segment again: a concave border, no seam
+        other = reached & (value != own.take(walkers))  # the own segment again: a concave border, no seam
         found_at.append(walkers[other])
         found_other.append(value[other])
         found_d.append(np.full(int(other.sum()), d))
@@ -178,16 +184,17 @@ def _walk(labels: np.ndarray, z: np.ndarray, dy: int, dx: int, gap: int
     ra, ca = rows - SLOPE_PIXELS * dy, cols - SLOPE_PIXELS * dx
     rq, cq = rows + d * dy, cols + d * dx
     rb, cb = rq + SLOPE_PIXELS * dy, cq + SLOPE_PIXELS * dx
-    ok = (ra >= 0) & (ra < h) & (ca >= 0) & (ca < w) & (rb >= 0) & (rb < h) & (cb >= 0) & (cb < w)
-    ok[ok] = ((labels[ra[ok], ca[ok]] == a[ok]) & (labels[rb[ok], cb[ok]] == b[ok])
-              & (labels[rows[ok], cols[ok]] == a[ok]) & (labels[rq[ok], cq[ok]] == b[ok]))
-
-    def depth_at(r: np.ndarray, c: np.ndarray) -> np.ndarray:
-        value = z[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)].astype(np.float64)
-        return np.where(ok & np.isfinite(value) & (value > 0), value, np.nan)
-
-    zp, zq, za, zb = depth_at(rows, cols), depth_at(rq, cq), depth_at(ra, ca), depth_at(rb, cb)
+    ok = np.flatnonzero((ra >= 0) & (ra < h) & (ca >= 0) & (ca < w) & (rb >= 0) & (rb < h) & (cb >= 0) & (cb < w))
+    a, b, d = a[ok], b[ok], d[ok]
+    p, q, pa, qb = (r[ok] * w + c[ok] for r, c in ((rows, cols), (rq, cq), (ra, ca), (rb, cb)))
+    same = ((flat_labels.take(pa) == a) & (flat_labels.take(qb) == b)
+            & (flat_labels.take(p) == a) & (flat_labels.take(q) == b))
+    a, b, d, p, q, pa, qb = a[same], b[same], d[same], p[same], q[same], pa[same], qb[same]
+    # z is a window of the frame's depth (not contiguous): read by (row, column)
+    zp, zq, za, zb = (z[np.divmod(pixel, w)].astype(np.float64) for pixel in (p, q, pa, qb))
+    # Holes (no depth: 0, NaN or infinite) on any of the four pixels leave no step.
+    good = np.flatnonzero((zp > 0) & (zq > 0) & (za > 0) & (zb > 0) & np.isfinite(zp + zq + za + zb))
+    a, b, d, zp, zq, za, zb = a[good], b[good], d[good], zp[good], zq[good], za[good], zb[good]
     slope = 0.5 * ((zp - za) + (zb - zq)) / SLOPE_PIXELS
     step = (zq - zp - slope * d) / zp
-    good = np.isfinite(step)
-    return a[good], b[good], step[good], zp[good]
+    return a, b, step, zp
