@@ -106,11 +106,17 @@ def test_halves_of_a_split_mask_are_merged_when_a_later_scan_sees_the_whole(tmp_
     # One sphere, two ids, with a gap between them wider than a seam is looked for across.
     mask[(mask == 1) & (column >= middle)] = 7
     mask[((mask == 1) | (mask == 7)) & (np.abs(column - middle) < 6)] = 0
-    # A strong per-view constraint: seen by one view only, two mask ids are two objects; once other
-    # views show the two masks landing together (a split mask), the constraint no longer holds.
-    config = ShadowCorrConfig(fusion_cannot_link=3.0)
+    # Seen by one view only, two mask ids are two objects (the per-view constraint); once other views
+    # show the two masks landing together (a split mask), the constraint no longer holds - as in one
+    # run of the four views.  (With a much stronger constraint, fusion_cannot_link=3, that one run
+    # keeps them apart too.)
+    config = ShadowCorrConfig()
+    split = dataclasses.replace(cam0, mask=mask)
+    one_shot = {s.instance: s.object for s in correspond(dataclasses.replace(
+        ring, views=[split, *views(ring, "cam2", "cam3", "cam4").views]), model, config).segments if s.view == "cam0"}
+    assert one_shot[1] == one_shot[7]
     with SiteMap(tmp_path / "site.map", config, model=model) as site:
-        first = site.add(dataclasses.replace(ring, views=[dataclasses.replace(cam0, mask=mask)]))
+        first = site.add(dataclasses.replace(ring, views=[split]))
         halves = {s.instance: s for s in first.segments if s.instance in (1, 7)}
         assert halves[1].object != halves[7].object
         update = site.add(views(ring, "cam2", "cam3", "cam4"))
