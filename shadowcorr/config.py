@@ -199,6 +199,10 @@ class ShadowCorrConfig(BaseModel):
         "synthetic generator)")
     volume_subdivisions: int = Field(2, ge=1, le=6, description="samples per voxel edge at which the depth images "
                                      "rule out a shadow voxel's parts (volume resolution: voxel_size / this)")
+    volume_mask_margin: int = Field(3, ge=0, description="background pixels within this many pixels of a labelled "
+                                    "one do not rule out the parts of a shadow behind them: a segmenter that draws "
+                                    "masks inside the objects' outlines leaves such pixels on the object (0: every "
+                                    "background pixel counts)")
     volume_relative_std: float = Field(0.12, ge=0, description="relative error of an object's volume added to its "
                                        "volume_std: the spread of volume / mesh volume on synthetic scenes "
                                        "(benchmarks/bench_geometry.py), parts no view saw")
