@@ -49,6 +49,9 @@ class ShadowCorrConfig(BaseModel):
     pose_min_rotation_deg: float = Field(0.1, ge=0, description="when no view needs more (and no more than pose_min_translation), all poses are kept")
     pose_min_translation: float = Field(1.0, ge=0, description="see pose_min_rotation_deg: how far a correction may move the view's surface (units)")
     pose_min_overlap: float = Field(0.2, gt=0, le=1, description="view pairs sharing less of their surface are not registered")
+    pose_depth_window: int = Field(5, ge=1, le=15, description="registration reads each sampled pixel's depth as the mean over "
+                                   "a square of this width (pixels; odd, at most the sampling stride) of the pixels on its "
+                                   "surface: less depth noise (1: the pixel alone)")
     pose_max_residual: float = Field(5.0, gt=0, description="registrations fitting worse (RMS point-to-plane, units) are not used")
 
     # segments

@@ -208,7 +208,7 @@ class SiteMap:
             timings["poses"] = (time.perf_counter() - t0) * 1e3
         moved_views = _stored_moves(stored, stored_moves)
         images = list(new.pixel_segment or [])
-        summaries = summarize_views(local, new, images, config.max_depth, declared)
+        summaries = summarize_views(local, new, images, config.max_depth, declared, config.pose_depth_window)
         points = segment_points(new, config.downsample_size)
         repeats, revisited, repeating = np.full(new.num_segments, -1, dtype=np.int64), [], []
         if stored is not None:

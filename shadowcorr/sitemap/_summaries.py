@@ -23,7 +23,7 @@ import numpy as np
 
 from ..bundle import Intrinsics, SceneBundle, View
 from ..stages import SegmentImage, Segments, voxel_downsample
-from ..stages._01_poses import _SAMPLED_PIXELS as POSE_SAMPLES  # the grid the pose stage samples
+from ..stages._01_poses import depth_on_grid, sampling_stride  # the grid the pose stage samples
 from ._store import unpack_array
 
 __all__ = ["SUMMARY_SIDE", "StoredViews", "ViewSummary", "summarize_views", "stored_views"]
@@ -60,19 +60,15 @@ def summary_stride(width: int, height: int) -> int:
     return max(1, math.ceil(max(width, height) / SUMMARY_SIDE))
 
 
-def grid_stride(width: int, height: int) -> int:
-    """The pose stage's sampling stride for an image of this size (``stages._01_poses._view_grid``)."""
-    return max(1, int(round(math.sqrt(height * width / POSE_SAMPLES))))
-
-
 def _on_grid(image: np.ndarray, stride: int) -> np.ndarray:
     return np.asarray(image[stride // 2::stride, stride // 2::stride])
 
 
 def summarize_views(bundle: SceneBundle, segments: Segments, images: list[SegmentImage | None],
-                    max_depth: float, declared: list[np.ndarray]) -> list[ViewSummary]:
+                    max_depth: float, declared: list[np.ndarray], depth_window: int) -> list[ViewSummary]:
     """The summary of every view of ``bundle`` (map units), whose segments are ``segments``
-    (``images``: their segment-index images, as cut; ``declared``: the poses the scan declared)."""
+    (``images``: their segment-index images, as cut; ``declared``: the poses the scan declared;
+    ``depth_window``: ``pose_depth_window``, so the stored grid is the depth the pose stage read)."""
     out = []
     first = np.searchsorted(segments.view, np.arange(len(bundle.views)))
     for j, view in enumerate(bundle.views):
@@ -92,8 +88,10 @@ def summarize_views(bundle: SceneBundle, segments: Segments, images: list[Segmen
             top = left = bottom = right = 0
         window = labels[top:bottom, left:right]
         window = window.astype(np.int16 if window.size == 0 or window.max() < np.iinfo(np.int16).max else np.int32)
-        g = grid_stride(k.width, k.height)
-        grid_depth = _on_grid(view.depth, g).astype(np.float32)
+        g = sampling_stride(k.height, k.width)
+        # The depth the pose stage registers this view with (its window averages included): a stored
+        # view is registered again at one pixel per sample, so it must hold what this run read.
+        grid_depth = depth_on_grid(view.depth, g, depth_window, max_depth).astype(np.float32)
         grid_depth = np.where(np.isfinite(grid_depth) & (grid_depth > 0), grid_depth, np.float32(0.0))
         grid_mask = (_on_grid(view.mask, g) > 0).astype(np.uint8)
         mine = np.repeat(segments.view == j, segments.lengths)
