@@ -23,7 +23,8 @@ from shadowcorr.evaluation import segment_metrics
 from shadowcorr.io import write_bundle
 from shadowcorr.sitemap import MapBusyError, MapConflictError, MapFileError, SiteMap
 from shadowcorr.sitemap._revision import revise
-from shadowcorr.sitemap._store import pack_array, unpack_array
+from shadowcorr.sitemap import _store, _summaries
+from shadowcorr.sitemap._store import FORMAT_VERSION, pack_array, unpack_array
 from shadowcorr.stages import refine_poses
 from shadowcorr.synth.noise import perturbed_pose
 
@@ -231,6 +232,67 @@ def test_the_map_file_keeps_arrays_as_raw_bytes_and_reopens_intact(tmp_path, mod
         SiteMap(tmp_path / "junk.map")
     with pytest.raises(FileNotFoundError):
         SiteMap(tmp_path / "absent.map", create=False)
+
+
+def _as_format_2(path) -> None:
+    """Rewrite a map file as format 2 wrote it: segment images on the depth's grid, no labels_stride."""
+    db = sqlite3.connect(path)
+    rows = db.execute("SELECT view, stride, depth_shape, labels, labels_dtype, labels_shape, labels_top, labels_left "
+                      "FROM views").fetchall()
+    for view, f, depth_shape, blob, dtype, shape, top, left in rows:
+        window = unpack_array(blob, dtype, shape, compressed=True)
+        h, w = (int(x) for x in depth_shape.split(","))
+        grid = np.full((h, w), -1, dtype=np.int64)
+        rr, cc = np.arange(h) * f + f // 2 - top, np.arange(w) * f + f // 2 - left
+        inside_r, inside_c = (rr >= 0) & (rr < window.shape[0]), (cc >= 0) & (cc < window.shape[1])
+        grid[np.ix_(inside_r, inside_c)] = window[np.ix_(rr[inside_r], cc[inside_c])]
+        on = np.argwhere(grid >= 0)
+        (r0, c0), (r1, c1) = on.min(axis=0), on.max(axis=0) + 1
+        data, dtype, shape = pack_array(grid[r0:r1, c0:c1].astype(np.int16), compress=True)
+        db.execute("UPDATE views SET labels = ?, labels_dtype = ?, labels_shape = ?, labels_top = ?, labels_left = ? "
+                   "WHERE view = ?", (data, dtype, shape, int(r0), int(c0), view))
+    db.execute("ALTER TABLE views DROP COLUMN labels_stride")
+    db.execute("UPDATE meta SET value = '2' WHERE key = 'format'")
+    db.commit()
+    db.close()
+
+
+def test_segment_images_are_kept_at_full_resolution_and_format_2_maps_are_upgraded(tmp_path, model, ring,
+                                                                                   monkeypatch) -> None:
+    monkeypatch.setattr(_summaries, "SUMMARY_SIDE", 160)  # depth every 2nd pixel of the 320 x 180 views
+    one_shot = {key(s): s.object for s in correspond(ring, model).segments}
+    final = {}
+    for old in (False, True):
+        path = tmp_path / f"site{int(old)}.map"
+        with SiteMap(path, model=model) as site:
+            site.add(views(ring, "cam0", "cam3"))
+            rows = site._store.view_rows([1, 2])
+            assert {(r["stride"], r["labels_stride"]) for r in rows} == {(2, 1)}
+            stored = _summaries.stored_views(rows, site._store.segment_rows([1, 2]))
+            image = stored.segments.pixel_segment[0]
+            assert image.shape == (180, 320) and image.view_stride == 2 and image.pixel_scale == 1
+            # The mask registration reads is the image on the depth's grid.
+            on_grid = _summaries.grid_labels(image, 2, (90, 160))
+            assert np.array_equal(stored.views[0].mask > 0, on_grid >= 0)
+        if old:
+            _as_format_2(path)
+            with monkeypatch.context() as patched, pytest.raises(MapFileError, match="format '2'"):
+                patched.setattr(_store, "_UPGRADABLE", frozenset())  # a version that cannot upgrade it refuses it
+                SiteMap(path)
+        with SiteMap(path, model=model) as site:
+            assert site._store.meta("format") == FORMAT_VERSION
+            assert {r["labels_stride"] for r in site._store.view_rows([1, 2])} == ({2} if old else {1})
+            before = {key(s): s.object for s in site.segments()}
+            again = site.add(views(ring, "cam0"))  # a revisit keeps every id, on either kind of stored image
+            assert {r.view for r in again.revisited_views} == {"cam0"}
+            assert all(before[key(s)] == s.object for s in again.segments)
+            for pair in (("cam1", "cam2"), ("cam4", "cam5"), ("cam6", "cam7")):
+                site.add(views(ring, *pair))
+            final[old] = {key(s): s.object for s in site.segments() if s.scan != 2}
+    for got in final.values():
+        ours = np.array(list(got.values()))
+        theirs = np.array([one_shot[k] for k in got])
+        assert segment_metrics(theirs, ours)["average_purity"] == 100.0
 
 
 def test_settings_and_inputs_a_map_refuses(tmp_path, model, ring) -> None:

@@ -34,7 +34,8 @@ from scipy.spatial.transform import Rotation
 
 from ..bundle import View
 from ..result import ViewPoseCorrection
-from ._summaries import StoredViews, ViewSummary
+from ..stages import SegmentImage
+from ._summaries import StoredViews, ViewSummary, grid_labels
 
 __all__ = ["FOOTPRINT_MARGIN_VOXELS", "REVISIT_DEG", "REVISIT_IOU", "REVISIT_VOXELS", "corrected_report",
            "footprints", "in_frustum", "rank_views", "registered_corrections", "revisits"]
@@ -141,13 +142,14 @@ def revisits(summaries: list[ViewSummary], new_view: np.ndarray, stored: StoredV
     docstring.  ``new_view``: the view of each new segment."""
     repeats = np.full(len(new_view), -1, dtype=np.int64)
     new_first = np.searchsorted(new_view, np.arange(len(summaries)))
-    stored_first = np.searchsorted(stored.segments.view, np.arange(len(stored.views)))
     twins: set[int] = set()
     repeating: set[int] = set()
     for j, summary in enumerate(summaries):
         fx, fy, cx, cy, _, _ = summary.intrinsics
         f = summary.stride
-        mine = _grid(summary.depth.shape, summary.labels, summary.labels_top, summary.labels_left, int(new_first[j]))
+        mine = grid_labels(SegmentImage(summary.labels, summary.labels_top, summary.labels_left,
+                                        (summary.intrinsics[5], summary.intrinsics[4]), summary.labels_stride),
+                           f, summary.depth.shape, int(new_first[j]))
         for w, view in enumerate(stored.views):
             k = view.intrinsics
             same_camera = view.depth.shape == summary.depth.shape and np.allclose(
@@ -157,9 +159,7 @@ def revisits(summaries: list[ViewSummary], new_view: np.ndarray, stored: StoredV
             turn = np.clip((np.trace(summary.pose[:3, :3].T @ view.pose[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
             if np.degrees(np.arccos(turn)) > REVISIT_DEG:
                 continue
-            image = stored.segments.pixel_segment[w]
-            theirs = _grid(summary.depth.shape, np.where(image.window >= 0, image.window - stored_first[w], -1),
-                           image.top, image.left, int(stored_first[w]))
+            theirs = grid_labels(stored.segments.pixel_segment[w], f, summary.depth.shape)
             twins.add(w)
             repeating.add(j)
             both = (mine >= 0) & (theirs >= 0)
@@ -175,10 +175,3 @@ def revisits(summaries: list[ViewSummary], new_view: np.ndarray, stored: StoredV
             repeats[a[same]] = stored.segment_objects[b[same]]
     return sorted(twins), sorted(repeating), repeats
 
-
-def _grid(shape: tuple[int, int], window: np.ndarray, top: int, left: int, first: int) -> np.ndarray:
-    """The summary grid's segment indices (``first`` + local index; -1 on no segment)."""
-    out = np.full(shape, -1, dtype=np.int64)
-    h, w = window.shape
-    out[top:top + h, left:left + w] = np.where(window >= 0, window.astype(np.int64) + first, -1)
-    return out

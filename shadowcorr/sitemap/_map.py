@@ -295,8 +295,8 @@ class SiteMap:
             scan = store.add_scan(plan.name, len(plan.summaries), n, model_sha256)
             store.add_objects(revision.created, scan)
             view_ids = [store.add_view(scan, s.name, s.pose, s.declared, s.intrinsics, s.stride, s.depth, s.labels,
-                                       s.labels_top, s.labels_left, s.grid_stride, s.grid_depth, s.grid_mask, s.lo,
-                                       s.hi, CELL_VOXELS * config.voxel_size)
+                                       s.labels_top, s.labels_left, s.labels_stride, s.grid_stride, s.grid_depth,
+                                       s.grid_mask, s.lo, s.hi, CELL_VOXELS * config.voxel_size)
                         for s in plan.summaries]
             for moved_view in plan.moved_views:
                 store.move_view(moved_view.view, moved_view.pose, moved_view.lo, moved_view.hi,

@@ -5,8 +5,9 @@ Tables (lengths in the map's units, poses camera-to-world in the OpenCV optical 
     meta       key -> value: format version, the map's configuration, the model it was made with
     scans      one row per update: name, time, views and segments added
     views      per view its pose (as registered with the map) and the pose its scan declared,
-               intrinsics, image size and its summary: depth and segment-index
-               image every ``stride``-th pixel (the pixel at stride * i + stride // 2), depth and
+               intrinsics, image size and its summary: depth every ``stride``-th pixel (the
+               pixel at stride * i + stride // 2), the segment-index image every
+               ``labels_stride``-th pixel (1: every pixel; a window of the frame), depth and
                mask (rock or not) on the pose stage's sampling grid (every ``grid_stride``-th
                pixel, float32), and the footprint (bounding box of its segments' points)
     view_cells the footprint's cells (cube of CELL_SIZE voxels): which views may see a place
@@ -38,7 +39,10 @@ import numpy as np
 __all__ = ["FORMAT_VERSION", "MapBusyError", "MapConflictError", "MapFileError", "MapStore", "pack_array",
            "unpack_array"]
 
-FORMAT_VERSION = "2"
+FORMAT_VERSION = "3"
+#: Formats this version opens, upgrading them on opening: format 2 kept a view's segment image on
+#: its depth's grid (read back as written); format 3 adds ``labels_stride`` (1: every pixel).
+_UPGRADABLE = frozenset({"2"})
 #: Footprint cells are cubes of this many voxels: a view's footprint spans a few of them.
 CELL_VOXELS = 64
 _CELL_BITS = 21
@@ -58,7 +62,7 @@ CREATE TABLE views (
     width INTEGER NOT NULL, height INTEGER NOT NULL, stride INTEGER NOT NULL,
     depth BLOB NOT NULL, depth_dtype TEXT NOT NULL, depth_shape TEXT NOT NULL,
     labels BLOB NOT NULL, labels_dtype TEXT NOT NULL, labels_shape TEXT NOT NULL,
-    labels_top INTEGER NOT NULL, labels_left INTEGER NOT NULL,
+    labels_top INTEGER NOT NULL, labels_left INTEGER NOT NULL, labels_stride INTEGER NOT NULL,
     grid_stride INTEGER NOT NULL, grid_depth BLOB NOT NULL, grid_depth_dtype TEXT NOT NULL,
     grid_depth_shape TEXT NOT NULL, grid_mask BLOB NOT NULL, grid_mask_dtype TEXT NOT NULL,
     grid_mask_shape TEXT NOT NULL,
@@ -167,8 +171,21 @@ class MapStore:
 
     def _check_format(self) -> None:
         version = self.meta("format")
+        if version in _UPGRADABLE:
+            self._upgrade()
+            version = self.meta("format")
         if version != FORMAT_VERSION:
             raise MapFileError(f"{self.path}: map format {version!r}; this version reads {FORMAT_VERSION!r}")
+
+    def _upgrade(self) -> None:
+        """A format-2 file made format 3 in one transaction: its views' segment images stay on their
+        depth's grid (``labels_stride`` = ``stride``); views added later keep theirs at every pixel."""
+        with self.writing(wait_s=self.busy_timeout_s):
+            if self.meta("format") != "2":  # another process upgraded it meanwhile
+                return
+            self.db.execute("ALTER TABLE views ADD COLUMN labels_stride INTEGER NOT NULL DEFAULT 0")
+            self.db.execute("UPDATE views SET labels_stride = stride")
+            self.set_meta("format", FORMAT_VERSION)
 
     def close(self) -> None:
         self.db.close()
@@ -276,18 +293,20 @@ class MapStore:
 
     def add_view(self, scan: int, name: str, pose: np.ndarray, declared: np.ndarray,
                  intrinsics: tuple[float, float, float, float, int, int], stride: int, depth: np.ndarray,
-                 labels: np.ndarray, labels_top: int, labels_left: int, grid_stride: int, grid_depth: np.ndarray,
-                 grid_mask: np.ndarray, lo: np.ndarray | None, hi: np.ndarray | None, cell: float) -> int:
+                 labels: np.ndarray, labels_top: int, labels_left: int, labels_stride: int, grid_stride: int,
+                 grid_depth: np.ndarray, grid_mask: np.ndarray, lo: np.ndarray | None, hi: np.ndarray | None,
+                 cell: float) -> int:
         arrays = [x for a in (depth, labels, grid_depth, grid_mask) for x in pack_array(a, compress=True)]
         box = [None] * 6 if lo is None else [float(x) for x in (*lo, *hi)]
         cur = self.db.execute(
             "INSERT INTO views (scan, name, pose, declared, fx, fy, cx, cy, width, height, stride, depth, depth_dtype, "
-            "depth_shape, labels, labels_dtype, labels_shape, labels_top, labels_left, grid_stride, grid_depth, "
-            "grid_depth_dtype, grid_depth_shape, grid_mask, grid_mask_dtype, grid_mask_shape, lo_x, lo_y, lo_z, hi_x, "
-            f"hi_y, hi_z) VALUES ({', '.join('?' * 32)})",
+            "depth_shape, labels, labels_dtype, labels_shape, labels_top, labels_left, labels_stride, grid_stride, "
+            "grid_depth, grid_depth_dtype, grid_depth_shape, grid_mask, grid_mask_dtype, grid_mask_shape, lo_x, lo_y, "
+            f"lo_z, hi_x, hi_y, hi_z) VALUES ({', '.join('?' * 33)})",
             (scan, name, pack_array(np.asarray(pose, dtype=np.float64))[0],
              pack_array(np.asarray(declared, dtype=np.float64))[0], *map(float, intrinsics[:4]),
-             int(intrinsics[4]), int(intrinsics[5]), stride, *arrays[:6], labels_top, labels_left, grid_stride,
+             int(intrinsics[4]), int(intrinsics[5]), stride, *arrays[:6], labels_top, labels_left, labels_stride,
+             grid_stride,
              *arrays[6:], *box))
         view = int(cur.lastrowid)
         if lo is not None:

@@ -1,17 +1,20 @@
 """Per-view summaries: what the map keeps of a view instead of its images, and the views they stand in for.
 
 A view's summary is its pose (as registered with the map, and as its scan declared it),
-intrinsics and image size; its depth and its image of segment indices read every ``stride``-th
-pixel per axis (the pixel at ``stride * i + stride // 2``), so that the long side keeps at most
-:data:`SUMMARY_SIDE` pixels; its depth (float32) and mask on the pixels pose registration samples
-(stage 01's grid of about 20 000 pixels), so that a stored view is registered from exactly what
-its full image would give; and per segment its points averaged on a grid of half the downsampling
-cell (``downsample_size / POINT_CELL_DIVISOR``: the run averages them again on the downsampling
-grid itself).  Read back, a summary is an ordinary
-:class:`~shadowcorr.bundle.View` with the coarser image's intrinsics, and its segments are
-ordinary :class:`~shadowcorr.stages.Segments`: the stages that link a new scan to the map
-read stored views exactly as they read the scan's own (their masks are coarser, their points
-fewer).  Lengths are in the map's units (the configuration's).
+intrinsics and image size; its depth read every ``stride``-th pixel per axis (the pixel at
+``stride * i + stride // 2``), so that the long side keeps at most :data:`SUMMARY_SIDE` pixels;
+its image of segment indices at full resolution (the window holding every segment pixel); its
+depth (float32) and mask on the pixels pose registration samples (stage 01's grid of about
+20 000 pixels), so that a stored view is registered from exactly what its full image would give;
+and per segment its points averaged on a grid of half the downsampling cell
+(``downsample_size / POINT_CELL_DIVISOR``: the run averages them again on the downsampling grid
+itself).  Read back, a summary is an ordinary :class:`~shadowcorr.bundle.View` with the coarser
+depth's intrinsics, and its segments are ordinary :class:`~shadowcorr.stages.Segments` whose
+segment image is finer than the view's depth (:attr:`~shadowcorr.stages.SegmentImage.view_stride`):
+the stages that link a new scan to the map read stored views as they read the scan's own (their
+depth and masks are coarser, their points fewer).  Maps of format 2 hold segment images on the
+depth's grid (``labels_stride`` = ``stride``); those read back as they were written.  Lengths
+are in the map's units (the configuration's).
 """
 
 from __future__ import annotations
@@ -24,16 +27,22 @@ import numpy as np
 from ..bundle import Intrinsics, SceneBundle, View
 from ..stages import SegmentImage, Segments, voxel_downsample
 from ..stages._01_poses import depth_on_grid, sampling_stride  # the grid the pose stage samples
-from ._store import unpack_array
+from ._store import MapFileError, unpack_array
 
-__all__ = ["SUMMARY_SIDE", "StoredViews", "ViewSummary", "summarize_views", "stored_views"]
+__all__ = ["LABELS_STRIDE", "SUMMARY_SIDE", "StoredViews", "ViewSummary", "grid_labels", "summarize_views",
+           "stored_views"]
 
-#: The long side of a summary image, at most (960 for a 1920 x 1080 view: every 2nd pixel).  The
-#: new views' landings in a stored view, and its depth carving the shadows, are read on these
-#: images: every 4th pixel (480) left the run of all 8 views of the real scene under the ``field``
-#: errors unlike one run of them in 6 of 24 draws and orders (agreement 98.2-99.4), every 2nd in
-#: 3 (99.4), for about twice the bytes per view.
+#: The long side of a summary's depth, at most (960 for a 1920 x 1080 view: every 2nd pixel).  The
+#: new views' landings in a stored view read its depth there, and its depth carves the shadows
+#: there.  With segment images on the same grid (format 2), every 4th pixel (480) left the run of
+#: all 8 views of the real scene under the ``field`` errors unlike one run of them in 6 of 24 draws
+#: and orders (agreement 98.2-99.4), every 2nd in 3 (99.4), for about twice the bytes per view.
 SUMMARY_SIDE = 960
+#: Segment images are kept at full resolution (every pixel).  Read on the summary grid, the run
+#: of all 8 views of the real scene under the ``field`` errors joined two of one run's objects in
+#: one of 12 draws and orders (agreement 99.3); at full resolution it gives one run's partition,
+#: for about 15 KB more per 1080p view (the labels compress well).
+LABELS_STRIDE = 1
 
 
 @dataclass
@@ -46,9 +55,10 @@ class ViewSummary:
     intrinsics: tuple[float, float, float, float, int, int]  # fx, fy, cx, cy, width, height of the full image
     stride: int
     depth: np.ndarray  # (h, w) depth on the summary grid, map units, 0 = invalid
-    labels: np.ndarray  # window of the segment index (within the view) on the summary grid, -1 = none
-    labels_top: int
+    labels: np.ndarray  # window of the segment index (within the view) every labels_stride-th pixel, -1 = none
+    labels_top: int  # the window's first row and column, in pixels of the labels' grid
     labels_left: int
+    labels_stride: int  # 1: the full image's pixels; == stride: the summary grid (format-2 maps)
     grid_stride: int  # the pose stage's sampling grid: every grid_stride-th pixel from grid_stride // 2
     grid_depth: np.ndarray  # (h, w) float32 depth there, map units, 0 = invalid
     grid_mask: np.ndarray  # (h, w) uint8: 1 where the view's mask has a rock
@@ -79,14 +89,18 @@ def summarize_views(bundle: SceneBundle, segments: Segments, images: list[Segmen
         depth = np.asarray(view.depth[np.ix_(rows, cols)], dtype=np.float32)
         depth = np.where(np.isfinite(depth) & (depth > 0) & (depth <= max_depth), depth, 0.0)
         depth = depth.astype(np.float16) if depth.max(initial=0.0) < 6e4 else depth
-        labels = images[j].at(rows[:, None], cols[None, :]) if images[j] is not None else np.full(depth.shape, -1)
+        image = images[j]  # a new view's: at full resolution
+        if image is not None:
+            labels, top, left = np.asarray(image.window), image.top, image.left
+        else:
+            labels, top, left = np.full((0, 0), -1), 0, 0
         labels = np.where(labels >= 0, labels - first[j], -1)
         on = np.argwhere(labels >= 0)
-        if on.size:
-            (top, left), (bottom, right) = on.min(axis=0), on.max(axis=0) + 1
+        if on.size:  # the window of the segment pixels (an image's window may hold none)
+            (r0, c0), (r1, c1) = on.min(axis=0), on.max(axis=0) + 1
+            window, top, left = labels[r0:r1, c0:c1], top + r0, left + c0
         else:
-            top = left = bottom = right = 0
-        window = labels[top:bottom, left:right]
+            window, top, left = labels[:0, :0], 0, 0
         window = window.astype(np.int16 if window.size == 0 or window.max() < np.iinfo(np.int16).max else np.int32)
         g = sampling_stride(k.height, k.width)
         # The depth the pose stage registers this view with (its window averages included): a stored
@@ -99,7 +113,7 @@ def summarize_views(bundle: SceneBundle, segments: Segments, images: list[Segmen
         lo, hi = (pts.min(axis=0), pts.max(axis=0)) if pts.size else (None, None)
         out.append(ViewSummary(view.name, view.pose.copy(), np.array(declared[j], dtype=np.float64),
                                (k.fx, k.fy, k.cx, k.cy, k.width, k.height), f, depth, window, int(top), int(left),
-                               g, grid_depth, grid_mask, lo, hi))
+                               LABELS_STRIDE, g, grid_depth, grid_mask, lo, hi))
     return out
 
 
@@ -151,7 +165,7 @@ class StoredViews:
             image = seg.pixel_segment[old]
             window = np.where(image.window >= 0, image.window - old_first[old] + new_first[j], -1)
             images.append(SegmentImage(window.astype(image.window.dtype), image.top, image.left, image.shape,
-                                       image.pixel_scale))
+                                       image.pixel_scale, image.view_stride))
         segments = Segments(points=points, lengths=seg.lengths[mine], view=view, instance=seg.instance[mine],
                             component=seg.component[mine], num_pixels=seg.num_pixels[mine],
                             camera_center=seg.camera_center[mine], optical_axis=seg.optical_axis[mine],
@@ -187,12 +201,14 @@ def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
                        width=w, height=h)
         rows = by_view.get(r["view"], [])
         inst = np.array([s["instance"] for s in rows], dtype=np.int64)
-        mask = np.zeros((h, w), dtype=np.int32)  # mask ids for pose registration's agreement check
-        top, left = int(r["labels_top"]), int(r["labels_left"])
-        if window.size and inst.size:
-            mask[top:top + window.shape[0], left:left + window.shape[1]] = np.where(window >= 0, inst[window], 0)
+        image = _segment_image(window, int(r["labels_top"]), int(r["labels_left"]), int(r["labels_stride"]), f,
+                               (int(r["height"]), int(r["width"])), (h, w))
+        # Mask ids on the depth's grid, for pose registration's agreement check.
+        on_grid = grid_labels(image, f, (h, w))
+        mask = np.where(on_grid >= 0, inst[np.maximum(on_grid, 0)], 0).astype(np.int32) if inst.size else \
+            np.zeros((h, w), dtype=np.int32)
         views.append(View(name=f"{r['scan']}/{r['name']}", pose=pose, intrinsics=k, depth=depth, mask=mask))
-        images.append(SegmentImage(np.array(window), top, left, (h, w), f))
+        images.append(image)
         for s in rows:
             p = unpack_array(s["points"], s["points_dtype"], s["points_shape"])
             points.append(p)
@@ -224,6 +240,33 @@ def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
                        np.array([r["view"] for r in view_rows], dtype=np.int64),
                        np.array([r["scan"] for r in view_rows], dtype=np.int64), [r["name"] for r in view_rows],
                        np.asarray(seg_ids, dtype=np.int64), np.asarray(objects, dtype=np.int64))
+
+
+def _segment_image(window: np.ndarray, top: int, left: int, labels_stride: int, stride: int,
+                   frame: tuple[int, int], grid: tuple[int, int]) -> SegmentImage:
+    """A stored view's segment image: at full resolution (``labels_stride`` 1; the view's depth
+    every ``stride``-th pixel) or on the depth's own grid (``labels_stride`` == ``stride``)."""
+    window = np.array(window)
+    if labels_stride == 1 and stride > 1:
+        return SegmentImage(window, top, left, frame, 1, stride)
+    if labels_stride == stride:
+        return SegmentImage(window, top, left, grid, stride)
+    raise MapFileError(f"a view of the map file keeps its segment image every {labels_stride}th pixel and its "
+                       f"depth every {stride}th: this version reads the image at every pixel or on the depth's grid")
+
+
+def grid_labels(image: SegmentImage, stride: int, shape: tuple[int, int], first: int = 0) -> np.ndarray:
+    """A view's segment indices (``first`` + index; -1: none) on its summary's grid of ``shape``
+    (every ``stride``-th pixel from ``stride // 2``), from a stored or new view's segment image."""
+    if image.pixel_scale == 1 and stride > 1:  # a full-resolution image
+        rows = np.arange(shape[0]) * stride + stride // 2
+        cols = np.arange(shape[1]) * stride + stride // 2
+        found = image.at(rows[:, None], cols[None, :])
+    else:  # already on the grid
+        found = np.full(shape, -1, dtype=np.int64)
+        h, w = image.window.shape
+        found[image.top:image.top + h, image.left:image.left + w] = image.window
+    return np.where(found >= 0, found + first, -1)
 
 
 def join_segments(first: Segments, second: Segments) -> Segments:

@@ -37,6 +37,10 @@ class SegmentImage:
     left: int
     shape: tuple[int, int]  # the whole frame (H, W)
     pixel_scale: int = 1  # pixels of the camera's full image one pixel here spans (a site map's summary: its stride)
+    # Pixels here that one pixel of the view's depth (and intrinsics) spans per axis: a site map's
+    # stored view keeps its segment image at full resolution and its depth on a coarser grid, the
+    # depth's pixel i standing for this image's pixels [i * view_stride, (i + 1) * view_stride).
+    view_stride: int = 1
 
     @classmethod
     def from_blobs(cls, blobs: "Blobs") -> "SegmentImage":
@@ -54,7 +58,7 @@ class SegmentImage:
         else:
             window = window.copy()
         window[window >= 0] += first_index
-        return SegmentImage(window, self.top, self.left, self.shape, self.pixel_scale)
+        return SegmentImage(window, self.top, self.left, self.shape, self.pixel_scale, self.view_stride)
 
     def at(self, row: np.ndarray, col: np.ndarray) -> np.ndarray:
         """Segment index at frame pixels (``row``, ``col``) inside the frame; -1 off the window."""

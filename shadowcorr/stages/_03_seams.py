@@ -95,7 +95,13 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     if labels.size == 0:
         return Seams.empty()
     h, w = labels.shape
-    z = depth[image.top:image.top + h, image.left:image.left + w]  # a view: read only where sampled
+    d = image.view_stride
+    if d > 1:  # depth coarser than the labels (a site map's stored view): each pixel reads the depth pixel it lies in
+        rows = np.minimum((image.top + np.arange(h)) // d, depth.shape[0] - 1)
+        cols = np.minimum((image.left + np.arange(w)) // d, depth.shape[1] - 1)
+        z = np.asarray(depth)[np.ix_(rows, cols)]
+    else:
+        z = depth[image.top:image.top + h, image.left:image.left + w]  # a view: read only where sampled
     a_parts, b_parts, step_parts, z_parts = [], [], [], []
     for dy, dx in DIRECTIONS:
         found = _walk(labels, z, dy, dx, config.fusion_seam_gap)

@@ -136,7 +136,10 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
     """Project every segment's sample points into every other view (see the module docstring).
 
     ``pixel_tolerance`` counts pixels of the camera's full image: on a downsampled view (a site
-    map's stored view, :attr:`SegmentImage.pixel_scale` > 1) it spans fewer of the view's pixels."""
+    map's stored view, :attr:`SegmentImage.pixel_scale` > 1) it spans fewer of the view's pixels.
+    Where the segment image is finer than the view's depth (:attr:`SegmentImage.view_stride` > 1:
+    a site map's stored view), points land in the segment image's pixels and read the depth of the
+    depth pixel those lie in."""
     s, num_views = segments.num_segments, len(bundle.views)
     if segments.pixel_segment is None or s == 0:
         return SurfaceEvidence.empty(s, num_views)
@@ -160,6 +163,10 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
             return None
         k = view.intrinsics
         height, width = image.shape
+        d = image.view_stride
+        if d > 1:  # the segment image is finer than the depth: land in the segment image's pixels
+            k = k.model_copy(update={"fx": k.fx * d, "fy": k.fy * d, "cx": k.cx * d + d // 2,
+                                     "cy": k.cy * d + d // 2, "width": width, "height": height})
         rotation, translation = view.pose[:3, :3], view.pose[:3, 3] * scale
         cand = _frustum_candidates(centre, radius, rotation, translation, k, width, height)
         cand &= (segments.view != j) & (samples > 0)
@@ -179,7 +186,12 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         inside = np.flatnonzero((z > 1e-9) & (col_f >= 0) & (col_f < width) & (row_f >= 0) & (row_f < height))
         rows, z = rows[inside], z[inside]
         col, row = col_f[inside].astype(np.int64), row_f[inside].astype(np.int64)
-        depth = view.depth.ravel()[row * width + col].astype(np.float64) * scale  # flat: 2x a 2-D gather
+        if d > 1:  # the depth pixel each landing pixel lies in
+            depth_h, depth_w = view.depth.shape
+            at = np.minimum(row // d, depth_h - 1) * depth_w + np.minimum(col // d, depth_w - 1)
+        else:
+            at = row * width + col
+        depth = view.depth.ravel()[at].astype(np.float64) * scale  # flat: 2x a 2-D gather
         tolerance = np.maximum(config.projection_depth_tolerance, config.projection_depth_tolerance_rel * z)
         agree = np.flatnonzero(np.isfinite(depth) & (depth > 0) & (np.abs(depth - z) <= tolerance))
         rows, row, col = rows[agree], row[agree], col[agree]
