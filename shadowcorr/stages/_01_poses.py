@@ -34,6 +34,12 @@ much of that surface, so the views can be registered to each other:
    point-to-plane information matrix is not degenerate).  The views' clouds are made
    ``num_threads`` at a time; registration keeps one thread (small_gicp's multi-threaded
    sums would make the result depend on the thread count).
+   Views left without any usable pair are registered once more on their *grazing* surfaces
+   (``_grazing_pairs``): cameras under a metre high see the ground they share with other views
+   at 5-15 degrees of incidence, where neighbouring samples lie further apart than a normal
+   allows; with normals up to ``_GRAZING_EDGE_RATIO`` spacings, pairs need only match a
+   quarter of ``pose_min_overlap``, and the masks (step 5) turn down the wrong registrations
+   such thin overlaps also give.  Views that register are left as they were.
 3. **Pose graph.**  Each accepted pair (i, j) measures ``T_ij``, the world-frame motion
    that brings view i's surface onto view j's, which ties the corrections:
    ``C_i = C_j T_ij``.  Rotations are averaged in the Lie algebra (iterated linear least
@@ -107,6 +113,11 @@ _FINE_MATCH = 1.0
 #: A grid neighbour further than this many times the sample spacing at its depth is across a
 #: depth edge: no normal there.
 _EDGE_RATIO = 4.0
+#: Views left without any usable pair are tried again with normals up to this many spacings (ground
+#: seen at grazing incidence down to about 5 degrees, whose row neighbours lie 1 / sin(incidence)
+#: spacings apart) and a pair need only match ``_GRAZING_OVERLAP_SHARE`` of ``pose_min_overlap``.
+_GRAZING_EDGE_RATIO = 12.0
+_GRAZING_OVERLAP_SHARE = 0.25
 #: Pixels of a depth window differing from the sample's own depth by more than this share of it lie on
 #: another surface (across a depth edge) and are not averaged in (``depth_on_grid``).
 _WINDOW_EDGE_SHARE = 0.1
@@ -235,16 +246,16 @@ def _view_grid(view: View, max_depth_bundle: float, window: int
 
 
 def _grid_normals(grid: np.ndarray, depth: np.ndarray, camera: np.ndarray, spacing_per_depth: float,
-                  reach: int = 1) -> np.ndarray:
+                  reach: int = 1, edge_ratio: float = _EDGE_RATIO) -> np.ndarray:
     """(3, h, w) unit normals (facing the camera) of a (3, h, w) point grid from its central
     differences ``reach`` samples either way; NaN within ``reach`` of the border, next to invalid
-    depth and across depth edges (neighbours further apart than ``_EDGE_RATIO`` sample spacings,
+    depth and across depth edges (neighbours further apart than ``edge_ratio`` sample spacings,
     ``spacing_per_depth`` x depth, per sample of reach)."""
     k = reach
     inner = (slice(None), slice(k, -k), slice(k, -k))
     along = grid[:, k:-k, 2 * k:] - grid[:, k:-k, :-2 * k]
     down = grid[:, 2 * k:, k:-k] - grid[:, :-2 * k, k:-k]
-    limit = (2.0 * k * _EDGE_RATIO * spacing_per_depth * depth[k:-k, k:-k]) ** 2
+    limit = (2.0 * k * edge_ratio * spacing_per_depth * depth[k:-k, k:-k]) ** 2
     cross = np.stack([along[1] * down[2] - along[2] * down[1],
                       along[2] * down[0] - along[0] * down[2],
                       along[0] * down[1] - along[1] * down[0]])
@@ -293,8 +304,9 @@ def _mask_interior(foreground: np.ndarray) -> np.ndarray:
 
 
 def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int], centre: np.ndarray,
-                scale: float, config: ShadowCorrConfig) -> _Cloud | None:
-    """The view's cloud from its sampled grid (``_view_grid``), in the centred config-unit frame."""
+                scale: float, config: ShadowCorrConfig, edge_ratio: float = _EDGE_RATIO) -> _Cloud | None:
+    """The view's cloud from its sampled grid (``_view_grid``), in the centred config-unit frame;
+    normals end at neighbours further than ``edge_ratio`` sample spacings (``_grid_normals``)."""
     grid, depth, rows, cols, stride = sampled
     grid = grid * scale - centre[:, None, None]
     camera = view.camera_center * scale - centre
@@ -306,7 +318,7 @@ def _make_cloud(view: View, sampled: tuple[np.ndarray, np.ndarray, np.ndarray, n
     quarter = depth[::2, ::2]
     median_depth = float(np.nanmedian(quarter)) if np.isfinite(quarter).any() else 0.0
     normals = _grid_normals(grid, depth * scale, camera, spacing_per_depth,
-                            _normal_reach(median_depth, relative_noise, spacing_per_depth))
+                            _normal_reach(median_depth, relative_noise, spacing_per_depth), edge_ratio)
     # Moving points: every _MOVING_STRIDE-th grid point with a normal, those of twice the stride first.
     step = _MOVING_STRIDE
     index = np.arange(depth.size).reshape(depth.shape)[::step, ::step]
@@ -443,9 +455,12 @@ def _gauss_newton(source: _Cloud, target: _Cloud, transform: np.ndarray, match: 
     return transform
 
 
-def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig) -> tuple[_Pair | None, str]:
+def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_overlap: float | None = None
+              ) -> tuple[_Pair | None, str]:
     """Coarse GICP (small_gicp, thinned clouds, wide matching), then point-to-plane on the moving
-    grid samples (``_point_to_plane``); None (and why) when the result is not trustworthy."""
+    grid samples (``_point_to_plane``); None (and why) when the result is not trustworthy (among
+    others, when less than ``min_overlap``, by default ``pose_min_overlap``, of the source matches)."""
+    min_overlap = config.pose_min_overlap if min_overlap is None else min_overlap
     spacing = config.pose_point_spacing
     coarse = _coarse_match_distance(config, max(source.reach, target.reach))
     result = small_gicp.align(target.coarse, source.coarse, target.coarse_tree, registration_type="GICP",
@@ -460,8 +475,8 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig) -> tuple
     transform, moved, matched, normals = _point_to_plane(source, target, np.asarray(result.T_target_source),
                                                          fine, _FINE_STOP_SPACING * spacing)
     overlap = moved.shape[1] / source.points.shape[1]
-    if overlap < config.pose_min_overlap:
-        return None, f"overlap {overlap:.2f} < {config.pose_min_overlap}"
+    if overlap < min_overlap:
+        return None, f"overlap {overlap:.2f} < {min_overlap:.3g}"
     offset = np.einsum("ij,ij->j", moved - matched, normals)
     residual = float(np.sqrt(np.mean(offset**2)))
     max_residual = max(config.pose_max_residual, _NOISE_RESIDUAL * noise)
@@ -647,6 +662,49 @@ def _mask_agreement(clouds: list[_Cloud | None], pairs: list[tuple[int, int]], r
     return both, one
 
 
+def _grazing_pairs(bundle: SceneBundle, sampled: list, clouds: list[_Cloud | None], edges: list[_Pair],
+                   why: dict[int, str], centre: np.ndarray, scale: float, cell: float, config: ShadowCorrConfig
+                   ) -> list[tuple[int, int]]:
+    """Register the views left without any usable pair again, on their grazing surfaces.
+
+    Cameras low over the ground (under a metre, pitched a few degrees down) see the ground
+    they share with other views at 5-15 degrees of incidence, where neighbouring grid samples
+    lie up to 12 spacings apart: ``_EDGE_RATIO`` takes that for a depth edge, so the shared
+    ground has no normals and two such views 90 degrees apart match 0-4 % of their samples (the
+    near ground, most of each view, is seen by no other).  Such views are registered once more
+    with normals up to ``_GRAZING_EDGE_RATIO`` spacings and a quarter of ``pose_min_overlap``
+    (``_GRAZING_OVERLAP_SHARE``); the pairs found are used like the others (pose graph, then the
+    masks' confirmation, which turns down the wrong registrations such thin overlaps also give).
+    Views that already register are left exactly as they were: on rigs whose views share their
+    surface head-on, the grazing normals would change their registrations without improving them.
+    Accepted pairs join ``edges`` (and ``clouds`` takes the grazing cloud of a view that had none);
+    returns the pairs tried.
+    """
+    paired = np.zeros(len(clouds), dtype=bool)
+    for e in edges:
+        paired[[e.source, e.target]] = True
+    if paired.all() or len(clouds) < 2:
+        return []
+    grazing = thread_map(lambda vs: _make_cloud(*vs, centre, scale, config, _GRAZING_EDGE_RATIO),
+                         zip(bundle.views, sampled), config.num_threads)
+    for k, c in enumerate(grazing):
+        if c is not None:
+            c.cells = _cell_keys(c.points.T, cell)
+            if clouds[k] is None:
+                clouds[k] = c
+    min_overlap = _GRAZING_OVERLAP_SHARE * config.pose_min_overlap
+    tried = [(i, j) for i, j in _candidate_pairs(grazing, min_overlap) if not (paired[i] and paired[j])]
+    for i, j in tried:
+        pair, reason = _register(grazing[i], grazing[j], config, min_overlap)
+        if pair is None:
+            for k, other in ((i, j), (j, i)):
+                if not paired[k]:
+                    why[k] = f"registration with {bundle.views[other].name}: {reason}"
+            continue
+        edges.append(dataclasses.replace(pair, source=i, target=j))
+    return tried
+
+
 def _groups(n: int, edges: list[_Pair]) -> np.ndarray:
     """Connected group label of every view in the graph of ``edges`` (a view without edges is its own group)."""
     src = [e.source for e in edges]
@@ -719,6 +777,8 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
             why.setdefault(j, f"registration with {bundle.views[i].name}: {reason}")
             continue
         edges.append(dataclasses.replace(pair, source=i, target=j))
+    candidates = sorted(set(candidates) | set(_grazing_pairs(bundle, sampled, clouds, edges, why, centre, scale, cell,
+                                                             config)))
 
     # Solve; drop disagreeing edges and out-of-bound views until everything left is consistent.
     status = ["corrected"] * n
