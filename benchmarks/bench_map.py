@@ -212,7 +212,7 @@ def tiled_field(model, tiles: int, tile_noise: str | None, work: Path, out: Path
     return {"records": records, "summary": summary}
 
 
-def contiguous_field(model, stops: tuple[int, int], work: Path, out: Path, max_linked_views: int = 16) -> dict:
+def contiguous_field(model, stops: tuple[int, int], work: Path, out: Path, max_linked_views: int = 32) -> dict:
     """A field of spheres on the ground, scanned stop by stop along rows: each scan is 4 views from one
     stop (looking along +x, +y, -x, -y, tilted down), and neighbouring stops see the same rocks, so
     every scan after the first links to stored views.  Exact depth and poses; masks are sphere ids."""
@@ -326,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--part", choices=["real", "field", "both", "contiguous"], default="both")
     p.add_argument("--stops", default="5x10", help="contiguous field: rows x columns of stops (4 views each)")
-    p.add_argument("--max-linked", type=int, default=16, help="contiguous field: SiteMap max_linked_views")
+    p.add_argument("--max-linked", type=int, default=32, help="contiguous field: SiteMap max_linked_views")
     p.add_argument("--field-seeds", type=int, default=2, help="draws of the field errors on the real scene")
     p.add_argument("--tiles", type=int, default=25, help="tiles of the field (20 rocks each)")
     p.add_argument("--tile-noise", default=None, help="a bench_quality perturbation per tile (e.g. mild); default none")

@@ -398,3 +398,21 @@ def test_plain_correspond_labels_a_hundred_view_bundle(tmp_path) -> None:
     result = json.loads((tmp_path / "result.json").read_text())
     assert len({s["view"] for s in result["segments"]}) == 100
     assert result["metrics"]["average_purity"] == 100.0 and len(result["objects"]) == 4
+
+
+def test_linked_views_cover_the_sides_a_scan_misses():
+    """Past ``max_views`` a stored view that sees the new segments from another side comes before
+    one that sees more of them from the side the new view already sees them from."""
+    from shadowcorr.poses import look_at_pose
+    from shadowcorr.sitemap._linking import rank_views
+
+    rocks = np.array([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [-50.0, 0.0, 0.0]])
+
+    def cam(eye):
+        return (look_at_pose(np.asarray(eye, float), np.zeros(3)), 200.0, 200.0, 160.0, 90.0, 320, 180)
+
+    new = [cam([-600.0, 0.0, 200.0])]
+    stored = {1: cam([-500.0, 10.0, 200.0]), 2: cam([600.0, 0.0, 200.0])}
+    centroids = {1: rocks.copy(), 2: rocks[:1].copy()}
+    assert rank_views(new, rocks, stored, centroids, 5000.0, 2) == [1, 2]  # room for all: most shared first
+    assert rank_views(new, rocks, stored, centroids, 5000.0, 1) == [2]

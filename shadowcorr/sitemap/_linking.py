@@ -5,7 +5,13 @@ points (widened by ``FOOTPRINT_MARGIN_VOXELS`` voxels), indexed by the map's cel
 the stored views whose footprint meets a new view's costs what the neighbourhood holds, not what
 the map holds.  Of those, a stored view is linked when its frustum holds a centroid of a new
 segment or a new view's frustum holds one of its segment centroids (in front of the camera,
-inside the image, within ``max_depth``); the ``max_views`` with most such centroids are kept.
+inside the image, within ``max_depth``).  Where more than ``max_views`` are, they are chosen one by
+one for the sides they see the new segments from: each next view is the one that sees most new
+segments from a side (one of 26 directions) that neither the new views nor the views already
+chosen see them from, ties and the rest by most such centroids.  On a contiguous field (3 x 6
+stops of 4 views, ``benchmarks/bench_map.py --part contiguous --stops 3x6``), where the last
+scans share rocks with 60 stored views, this brings the map's average purity from 99.87 to 99.98
+with 32 views linked (the one-shot run of all 72 views: 100), from 98.67 to 98.81 with 16.
 
 **Poses.**  With ``refine_poses`` the new views are registered together with the linked stored
 views by the stage itself (:func:`~shadowcorr.stages.refine_poses`), every view at the pose its
@@ -77,20 +83,49 @@ def in_frustum(points: np.ndarray, pose: np.ndarray, fx: float, fy: float, cx: f
 
 def rank_views(new_cams: list[tuple], new_centroids: np.ndarray, stored_cams: dict[int, tuple],
                stored_centroids: dict[int, np.ndarray], max_depth: float, max_views: int) -> list[int]:
-    """Stored views (ids) linked to the new views, most shared centroids first, at most ``max_views``.
+    """Stored views (ids) linked to the new views, at most ``max_views`` (see the module docstring).
 
     ``*_cams``: per view ``(pose, fx, fy, cx, cy, width, height)``; ``new_centroids``: the new
     segments' centroids; ``stored_centroids``: per stored view its segments' centroids.
     """
-    scores = []
+    shared, seen = {}, {}
     for view, cam in stored_cams.items():
         theirs = stored_centroids.get(view, np.zeros((0, 3)))
-        shared = int(in_frustum(new_centroids, *cam, max_depth).sum()) if new_centroids.size else 0
+        mine = in_frustum(new_centroids, *cam, max_depth) if new_centroids.size else np.zeros(0, dtype=bool)
+        count = int(mine.sum())
         for new in new_cams:
-            shared += int(in_frustum(theirs, *new, max_depth).sum()) if theirs.size else 0
-        if shared:
-            scores.append((-shared, view))
-    return [view for _, view in sorted(scores)[:max_views]]
+            count += int(in_frustum(theirs, *new, max_depth).sum()) if theirs.size else 0
+        if count:
+            shared[view], seen[view] = count, mine
+    order = sorted(shared, key=lambda v: (-shared[v], v))
+    if len(order) <= max_views or not new_centroids.size:
+        return order[:max_views]
+    # Greedy cover of (new centroid, side it is seen from): a view that sees a segment from a side
+    # no linked view sees it from brings the evidence a run of all views would have.
+    def sides(pose: np.ndarray) -> np.ndarray:
+        d = pose[:3, 3] - new_centroids
+        return np.argmax(d @ _SIDES.T, axis=1)
+    covered = np.zeros((len(new_centroids), len(_SIDES)), dtype=bool)
+    rows = np.arange(len(new_centroids))
+    for cam in new_cams:
+        inside = in_frustum(new_centroids, *cam, max_depth)
+        covered[rows[inside], sides(cam[0])[inside]] = True
+    side = {v: sides(stored_cams[v][0]) for v in order}
+    chosen: list[int] = []
+    rest = list(order)
+    while rest and len(chosen) < max_views:
+        gains = [int((~covered[rows[seen[v]], side[v][seen[v]]]).sum()) for v in rest]
+        best = int(np.argmax(gains))  # ties (and no gain left): most shared centroids first
+        v = rest.pop(best)
+        chosen.append(v)
+        covered[rows[seen[v]], side[v][seen[v]]] = True
+    return chosen
+
+
+#: Sides a segment is seen from: the 26 directions of a cube's faces, edges and corners.
+_SIDES = np.array([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) != (0, 0, 0)],
+                  dtype=np.float64)
+_SIDES /= np.linalg.norm(_SIDES, axis=1, keepdims=True)
 
 
 def registered_corrections(reports: list[ViewPoseCorrection], current: list[np.ndarray], declared: list[np.ndarray]

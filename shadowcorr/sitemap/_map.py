@@ -107,7 +107,7 @@ class SiteMap:
     """
 
     def __init__(self, path: str | Path, config: ShadowCorrConfig | None = None, *, model: Model | None = None,
-                 create: bool = True, max_linked_views: int = 16, min_margin: float | None = None,
+                 create: bool = True, max_linked_views: int = 32, min_margin: float | None = None,
                  wait_s: float = 0.0):
         if not isinstance(max_linked_views, int) or max_linked_views < 1:
             raise ValueError(f"max_linked_views must be a whole number >= 1, got {max_linked_views!r}")
