@@ -202,30 +202,29 @@ def depth_on_grid(depth: np.ndarray, stride: int, window: int, max_depth: float)
     depth edge (another surface) and invalid ones stay out.  An invalid sample stays invalid.
     """
     height, width = depth.shape
-
-    def grid(dr: int, dc: int) -> np.ndarray:
-        """The pixels at offset (dr, dc) from the samples, NaN where invalid or off the image."""
-        rows = np.arange(stride // 2, height, stride) + dr
-        cols = np.arange(stride // 2, width, stride) + dc
-        out = np.full((rows.size, cols.size), np.nan)
-        r_ok, c_ok = (rows >= 0) & (rows < height), (cols >= 0) & (cols < width)
-        r0, c0 = int(np.argmax(r_ok)), int(np.argmax(c_ok))
-        block = depth[rows[r_ok][0]:rows[r_ok][-1] + 1:stride, cols[c_ok][0]:cols[c_ok][-1] + 1:stride]
-        out[r0:r0 + block.shape[0], c0:c0 + block.shape[1]] = block
-        out[~((out > 0) & (out <= max_depth))] = np.nan  # False for NaN and infinities too
-        return out
-
-    centre = grid(0, 0)
+    n_rows, n_cols = len(range(stride // 2, height, stride)), len(range(stride // 2, width, stride))
+    if n_rows * stride > height or n_cols * stride > width:  # a partial last block: NaN beyond the image
+        padded = np.full((max(n_rows * stride, height), max(n_cols * stride, width)), np.nan)
+        padded[:height, :width] = depth
+        depth = padded
+    # (sample row, row in its block, sample column, column in its block): a view, no copy; the
+    # window around a sample stays within its block (reach <= stride // 2).
+    blocks = depth[:n_rows * stride, :n_cols * stride].reshape(n_rows, stride, n_cols, stride)
+    half = stride // 2
+    centre = blocks[:, half, :, half].astype(np.float64)
+    centre[~((centre > 0) & (centre <= max_depth))] = np.nan  # False for NaN and infinities too
     reach = (min(window, stride) - 1) // 2
     if reach == 0:
         return centre
+    tolerance = _WINDOW_EDGE_SHARE * centre
     total, count = np.zeros_like(centre), np.zeros_like(centre)
     with np.errstate(invalid="ignore"):
         for dr in range(-reach, reach + 1):
             for dc in range(-reach, reach + 1):
-                neighbour = grid(dr, dc)
-                same = np.abs(neighbour - centre) <= _WINDOW_EDGE_SHARE * centre  # False where either is NaN
-                total += np.where(same, neighbour, 0.0)
+                neighbour = blocks[:, half + dr, :, half + dc].astype(np.float64)
+                # within a tenth of a valid centre's depth, so positive; False where either is NaN
+                same = (np.abs(neighbour - centre) <= tolerance) & (neighbour <= max_depth)
+                np.add(total, neighbour, out=total, where=same)
                 count += same
     return np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
 
