@@ -66,8 +66,9 @@ much of that surface, so the views can be registered to each other:
    with the declared poses; otherwise every declared pose of the group stays
    (``not_confirmed``).  Only samples away from a mask's outline take part: a segmenter
    that erodes its masks makes the outlines disagree exactly where the right poses let
-   the views see them, so outline samples spoke against good corrections.  Every view gets a report (applied correction, residual, overlap)
-   and a warning when it still disagrees with its neighbours or was not refined.
+   the views see them, so outline samples spoke against good corrections.  Every view gets a
+   report (applied correction, residual, overlap) and a warning when it still disagrees with
+   its neighbours or was not refined.
 
 Work is bounded and vectorised: about 20 000 samples per view, at most
 ``_COARSE_ITERATIONS`` GICP iterations (one thread) and ``2 x _FINE_ITERATIONS``
