@@ -54,6 +54,7 @@ PRIORITY_START = 1  # decode + prepare: a new request
 
 _LIVENESS_PERIOD_S = 0.5  # how often idle slots check that their process is alive
 _RESPAWN_BACKOFF_S = (0.5, 1.0, 2.0, 5.0, 10.0, 30.0)
+_EXIT_WAIT_S = 5.0  # how long a closing pool waits for a worker to exit before killing it
 
 
 class WorkerCrashed(Exception):
@@ -335,10 +336,22 @@ class WorkerPool:
             await asyncio.to_thread(_kill_executor, executor)
 
     def _shutdown_executor(self, slot: _Slot) -> None:
+        """Let the slot's idle worker exit; one that is still busy (a job the shutdown has abandoned
+        while its slot was between jobs) is killed after ``_EXIT_WAIT_S``: a plain
+        ``shutdown(wait=True)`` would wait for that job however long it runs, and the server with it."""
         executor, slot.executor = slot.executor, None
         slot.ready = False
-        if executor is not None:
-            executor.shutdown(wait=True, cancel_futures=True)
+        if executor is None:
+            return
+        processes = list((getattr(executor, "_processes", None) or {}).values())  # no public API for this
+        executor.shutdown(wait=False, cancel_futures=True)
+        for p in processes:
+            p.join(_EXIT_WAIT_S)
+        if any(p.is_alive() for p in processes):
+            log.warning("worker %s still busy %.0f s into the shutdown; killing it", slot.index, _EXIT_WAIT_S)
+            for p in processes:
+                p.kill()
+                p.join(_EXIT_WAIT_S)
 
 
 def _settle(job: _Job, *, result: Any = None, exc: BaseException | None = None) -> None:
