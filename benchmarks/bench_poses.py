@@ -13,6 +13,11 @@ synthetic scenes (``shadowcorr.synth``, exact ground truth) and on the real samp
 * the average purity of ``correspond`` with ``refine_poses`` off and on, per error level.
 
     python benchmarks/bench_poses.py --synth-scenes 4 --seeds 2
+    python benchmarks/bench_poses.py --synth-scenes 4 --seeds 2 --no-purity --docs   # the docs' accuracy table
+
+``--docs`` also writes the pose errors and what became of every view as a Markdown table
+(default ``docs/benchmarks/tables/poses-accuracy.md``, included by the documentation's pose
+refinement page), with the release and the command, so that no figure is typed by hand.
 """
 
 from __future__ import annotations
@@ -20,12 +25,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import platform
 import time
+from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from shadowcorr import ShadowCorrConfig, correspond, load_model
+from shadowcorr import ShadowCorrConfig, __version__, correspond, load_model
 from shadowcorr.bundle import SceneBundle, unit_scale
 from shadowcorr.convert import load_ue_scene
 from shadowcorr.evaluation import pose_errors
@@ -34,6 +42,8 @@ from shadowcorr.synth import SynthConfig, generate_scene
 from shadowcorr.synth.noise import perturbed_pose
 
 CM_PER_DEGREE = 2.5
+REPO = Path(__file__).resolve().parents[1]
+DOCS_TABLE = REPO / "docs" / "benchmarks" / "tables" / "poses-accuracy.md"
 
 
 def perturbed(bundle: SceneBundle, level_deg: float, seed: int) -> SceneBundle:
@@ -56,13 +66,15 @@ def main() -> None:
     parser.add_argument("--subsets", default="0,2,4,6;1,3,5,7;0,1,2,3;0,2,4,6,1,3,5,7",
                         help="camera subsets of the real sample scene, ';'-separated")
     parser.add_argument("--no-purity", action="store_true", help="only pose errors and time")
+    parser.add_argument("--docs", nargs="?", const=str(DOCS_TABLE), default=None, metavar="PATH",
+                        help=f"also write the pose errors to PATH (default {DOCS_TABLE.relative_to(REPO)})")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
     scenes: list[tuple[str, SceneBundle]] = []
     for subset in args.subsets.split(";"):
         cams = [int(c) for c in subset.split(",")]
-        scenes.append((f"real {subset}", load_ue_scene("examples/ue_sample", "2001", cams)))
+        scenes.append((f"real {subset}", load_ue_scene(REPO / "examples" / "ue_sample", "2001", cams)))
     for k in range(args.synth_scenes):
         t0 = time.perf_counter()
         scenes.append((f"synth {3003 + k}", generate_scene(SynthConfig(), 3003 + k)))
@@ -128,6 +140,44 @@ def main() -> None:
                 print(f"{kind:<6} " + "   ".join(line))
     kept = sum(s != "corrected" for r in rows for s in r[12])
     print(f"\nviews not corrected: {kept} of {sum(len(r[12]) for r in rows)}")
+    if args.docs:
+        path = Path(args.docs)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(docs_table(args, rows, len(scenes) - args.synth_scenes))
+        print(f"wrote {path}")
+
+
+def docs_table(args: argparse.Namespace, rows: list[tuple], real_subsets: int) -> str:
+    """The pose errors before and after refinement per kind of scene and error level, with the
+    statuses of the views, as Markdown."""
+    def cell(values: list[float], digits: int) -> str:
+        a = np.asarray(values)
+        return " / ".join(f"{x:.{digits}f}" for x in (np.median(a), np.percentile(a, 90), a.max()))
+
+    command = f"python benchmarks/bench_poses.py --synth-scenes {args.synth_scenes} --seeds {args.seeds}" \
+              + (" --no-purity" if args.no_purity else "") + " --docs"
+    lines = [
+        f"ShadowCorr {__version__}; {platform.machine()}, torch {torch.__version__}. "
+        f"The real sample scene with {real_subsets} camera subsets ({args.subsets.replace(';', ' / ')}) and "
+        f"{args.synth_scenes} synthetic scenes (seeds 3003-{3002 + args.synth_scenes}), {args.seeds} perturbations "
+        f"per scene and level: `{command}`.  Errors relative to the common motion of all cameras; "
+        "median / p90 / max over the views.",
+        "",
+        "| scenes | every camera rotated / moved by | before: rotation ° | after: rotation ° | after: camera centre cm | views: status |",
+        "|---|---|---|---|---|---|",
+    ]
+    for kind, label in (("real", "real"), ("synth", "synthetic")):
+        for level in args.levels:
+            sel = [r for r in rows if r[0].startswith(kind) and r[1] == level]
+            if not sel:
+                continue
+            gather = lambda column: [x for r in sel for x in np.atleast_1d(r[column])]  # noqa: E731
+            statuses = Counter(s for r in sel for s in r[12])
+            status = ", ".join(f"{n} {s}" for s, n in sorted(statuses.items(), key=lambda kv: -kv[1]))
+            lines.append(f"| {label} | {level:g}° / {CM_PER_DEGREE * level:g} cm | {cell(gather(6), 3)} | "
+                         f"{cell(gather(2), 3)} | {cell(gather(3), 2)} | {status} |")
+    lines.append("")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
