@@ -2,6 +2,7 @@
 
 Usage: python benchmarks/bench_geometry.py [--scenes 10] [--seed 0] [--cameras 4] [--method fused]
                                            [--condition NAME] [--misses] [--sample]
+                                           [--docs [PATH]] [--docs-conditions clean,mixed-edges,field]
 
 Every scene is generated (``shadowcorr.synth``, numpy rasteriser, exact images), optionally
 perturbed (``--condition``: one of the quality benchmark's perturbations or combined error
@@ -11,8 +12,9 @@ most of its points come from (the bundle's ground truth of each segment) and com
 that rock's mesh:
 
 * **box ratio**: the volume of the object's oriented box over the volume of the same
-  construction on the rock's mesh vertices (a box turned about z along the footprint's
-  principal axis, spanning the vertices), and over the rock's axis-aligned box;
+  construction on the rock's mesh vertices (a box turned about z along a side of the
+  smallest-area rectangle around the vertices' footprint, spanning the vertices), and over
+  the rock's axis-aligned box;
 * **volume ratio**: the object's ``volume`` over the rock's mesh volume, for rocks seen
   from at least ``--min-views`` views (default 3).  A rock sits up to ``sink_depth`` (5 cm)
   in uneven ground: the part below the ground surface is in the mesh volume but in no view.
@@ -24,17 +26,24 @@ rock's diameter and its mask pixels in each view, the share of the object's poin
 come from its rock (below 1: a merge), and how many objects share the rock (above 1: a
 split).  ``--sample`` also prints the sample scene's objects (no meshes there: boxes, volumes
 and the volume / box ratio, which for a rock lies well below 1).
+
+``--docs`` runs the scenes once per condition of ``--docs-conditions`` (``clean``: exact
+images) instead of ``--condition`` and writes the distributions as a Markdown table (default
+``docs/benchmarks/tables/geometry.md``, which the exports guide includes), with the release,
+the machine and the command.  Nothing here is timed.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import platform
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from shadowcorr import ShadowCorrConfig, correspond
+from shadowcorr import ShadowCorrConfig, __version__, correspond
 from shadowcorr.stages import oriented_boxes
 from shadowcorr.synth import SynthConfig, scene_seed
 from shadowcorr.synth.generate import synthesize
@@ -44,6 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_quality  # noqa: E402  (the perturbation catalogue and its seeds)
 
 CONDITIONS = (*bench_quality.PERTURBATIONS, *bench_quality.COMBINED)
+DOCS_TABLE = REPO / "docs" / "benchmarks" / "tables" / "geometry.md"
 
 
 def _quantiles(values: np.ndarray) -> str:
@@ -140,6 +150,113 @@ def misses(rows: list[dict], min_views: int) -> None:
                   f"| {r['volume_ratio']:.2f}{' *' if vol_off else ''} |")
 
 
+def _within_box(ratio: np.ndarray) -> np.ndarray:
+    return np.isfinite(ratio) & (ratio <= 1.5) & (ratio >= 1 / 1.5)
+
+
+def _within_volume(ratio: np.ndarray) -> np.ndarray:
+    return np.isfinite(ratio) & (np.abs(ratio - 1) <= 0.3)
+
+
+def run(args: argparse.Namespace, condition: str | None) -> list[dict]:
+    """Every object of ``args.scenes`` scenes under ``condition``, printing a row per scene."""
+    rows = []
+    print(f"\n{condition or 'clean'}")
+    print("| scene seed | objects | box ratio median | volume ratio median (>= %d views) |" % args.min_views)
+    print("|---|---|---|---|")
+    for i in range(args.scenes):
+        seed = scene_seed(args.seed, i)
+        scene_rows = measure(seed, args.cameras, args.method, condition)
+        rows += scene_rows
+        box = np.array([r["box_ratio"] for r in scene_rows])
+        vol = np.array([r["volume_ratio"] for r in scene_rows if r["views"] >= args.min_views])
+        print(f"| {seed} | {len(scene_rows)} | {np.nanmedian(box):.3f} | {np.nanmedian(vol):.3f} |", flush=True)
+    return rows
+
+
+def report(args: argparse.Namespace, condition: str | None, rows: list[dict]) -> None:
+    """The distributions of the ratios over ``rows``."""
+    box = np.array([r["box_ratio"] for r in rows])
+    aligned = np.array([r["aligned_ratio"] for r in rows])
+    seen = [r for r in rows if r["views"] >= args.min_views]
+    vol = np.array([r["volume_ratio"] for r in seen])
+    z = np.array([r["volume_z"] for r in seen])
+    print(f"\n{len(rows)} objects in {args.scenes} scenes ({args.cameras} cameras, method {args.method}, "
+          f"{condition or 'clean'}); {len(seen)} seen from >= {args.min_views} views")
+    print("distribution: min / 5 % / 25 % / median / 75 % / 95 % / max")
+    print(f"box volume / true oriented box     {_quantiles(box[np.isfinite(box)])}")
+    print(f"box volume / true axis-aligned box {_quantiles(aligned[np.isfinite(aligned)])}")
+    within = _within_box(box)
+    print(f"objects with a box within 1.5x of the true oriented box: {within.mean():.1%} "
+          f"({int(within.sum())} of {box.size}; without a box: {int((~np.isfinite(box)).sum())}); "
+          f"of the true axis-aligned box: {_within_box(aligned).mean():.1%}")
+    print(f"volume / mesh volume (>= {args.min_views} views) {_quantiles(vol[np.isfinite(vol)])}")
+    near = _within_volume(vol)
+    print(f"volumes within +-30 % of the mesh volume: {near.mean():.1%} ({int(near.sum())} of {vol.size}; "
+          f"without a volume: {int((~np.isfinite(vol)).sum())})")
+    zf = np.abs(z[np.isfinite(z)])
+    print(f"|volume - mesh volume| within 1 / 2 volume_std: {np.mean(zf <= 1):.1%} / {np.mean(zf <= 2):.1%}")
+    if args.misses:
+        misses(rows, args.min_views)
+
+
+def _spread(values: np.ndarray) -> str:
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return "–"
+    return " · ".join(f"{x:.2f}" for x in np.quantile(values, [0.05, 0.5, 0.95]))
+
+
+def docs_table(args: argparse.Namespace, results: dict[str, list[dict]]) -> str:
+    """The conditions' distributions as Markdown, with what was measured where."""
+    command = f"python benchmarks/bench_geometry.py --scenes {args.scenes} --docs"
+    if Path(args.docs).resolve() != DOCS_TABLE:
+        command += f" {args.docs}"
+    if args.docs_conditions != DOCS_CONDITIONS:
+        command += f" --docs-conditions {args.docs_conditions}"
+    for flag, value, default in (("--seed", args.seed, 0), ("--cameras", args.cameras, 4),
+                                 ("--method", args.method, "fused"), ("--min-views", args.min_views, 3)):
+        if value != default:
+            command += f" {flag} {value}"
+    lines = [
+        f"ShadowCorr {__version__}; {platform.machine()} with {os.cpu_count()} cores, "
+        f"{platform.python_implementation()} {platform.python_version()}; method `{args.method}`, "
+        f"{args.cameras} cameras, {args.scenes} generated scenes per row: `{command}`.  ",
+        f"Ratios: 5 % · median · 95 % over the objects; volumes of the rocks seen from at least {args.min_views} "
+        "views; the true box is the same construction on the rock's mesh.",
+        "",
+        f"| condition | objects (≥ {args.min_views} views) | box volume / true box | within 1.5× "
+        "| box volume / true axis-aligned box | within 1.5× | volume / mesh volume | within ±30 % "
+        "| within 1 · 2 `volume_std` |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, rows in results.items():
+        box = np.array([r["box_ratio"] for r in rows])
+        aligned = np.array([r["aligned_ratio"] for r in rows])
+        seen = [r for r in rows if r["views"] >= args.min_views]
+        vol = np.array([r["volume_ratio"] for r in seen])
+        z = np.abs(np.array([r["volume_z"] for r in seen]))
+        z = z[np.isfinite(z)]
+        label = "exact images" if name == "clean" else f"`{name}` ({_describe(name)})"
+        lines.append(
+            f"| {label} | {len(rows)} ({len(seen)}) | {_spread(box)} | {_percent(_within_box(box))} "
+            f"| {_spread(aligned)} | {_percent(_within_box(aligned))} | {_spread(vol)} "
+            f"| {_percent(_within_volume(vol))} | {_percent(z <= 1, 0)} · {_percent(z <= 2, 0)} |")
+    return "\n".join(lines) + "\n"
+
+
+def _percent(flags: np.ndarray, digits: int = 1) -> str:
+    return f"{100.0 * flags.mean():.{digits}f} %" if flags.size else "–"
+
+
+def _describe(name: str) -> str:
+    entry = bench_quality.PERTURBATIONS.get(name) or bench_quality.COMBINED[name]
+    return entry[0]
+
+
+DOCS_CONDITIONS = "clean,mixed-edges,field"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", type=int, default=5)
@@ -152,45 +269,32 @@ def main() -> None:
     parser.add_argument("--min-views", type=int, default=3)
     parser.add_argument("--misses", action="store_true", help="list the objects outside either tolerance")
     parser.add_argument("--sample", action="store_true", help="also list the sample scene's objects")
+    parser.add_argument("--docs", nargs="?", const=str(DOCS_TABLE), default=None, metavar="PATH",
+                        help=f"run --docs-conditions and write the table (default {DOCS_TABLE.relative_to(REPO)})")
+    parser.add_argument("--docs-conditions", default=DOCS_CONDITIONS, metavar="NAMES",
+                        help="comma-separated conditions of the --docs table (clean: exact images)")
     args = parser.parse_args()
     if args.list:
         for name in CONDITIONS:
-            entry = bench_quality.PERTURBATIONS.get(name) or bench_quality.COMBINED[name]
-            print(f"{name:<16} {entry[0]}")
+            print(f"{name:<16} {_describe(name)}")
         return
 
-    rows = []
-    print("| scene seed | objects | box ratio median | volume ratio median (>= %d views) |" % args.min_views)
-    print("|---|---|---|---|")
-    for i in range(args.scenes):
-        seed = scene_seed(args.seed, i)
-        scene_rows = measure(seed, args.cameras, args.method, args.condition)
-        rows += scene_rows
-        box = np.array([r["box_ratio"] for r in scene_rows])
-        vol = np.array([r["volume_ratio"] for r in scene_rows if r["views"] >= args.min_views])
-        print(f"| {seed} | {len(scene_rows)} | {np.nanmedian(box):.3f} | {np.nanmedian(vol):.3f} |", flush=True)
-
-    box = np.array([r["box_ratio"] for r in rows])
-    aligned = np.array([r["aligned_ratio"] for r in rows])
-    seen = [r for r in rows if r["views"] >= args.min_views]
-    vol = np.array([r["volume_ratio"] for r in seen])
-    z = np.array([r["volume_z"] for r in seen])
-    print(f"\n{len(rows)} objects in {args.scenes} scenes ({args.cameras} cameras, method {args.method}, "
-          f"{args.condition or 'clean'}); {len(seen)} seen from >= {args.min_views} views")
-    print("distribution: min / 5 % / 25 % / median / 75 % / 95 % / max")
-    print(f"box volume / true oriented box     {_quantiles(box[np.isfinite(box)])}")
-    print(f"box volume / true axis-aligned box {_quantiles(aligned[np.isfinite(aligned)])}")
-    within = np.isfinite(box) & (box <= 1.5) & (box >= 1 / 1.5)
-    print(f"objects with a box within 1.5x of the true oriented box: {within.mean():.1%} "
-          f"({int(within.sum())} of {box.size}; without a box: {int((~np.isfinite(box)).sum())})")
-    print(f"volume / mesh volume (>= {args.min_views} views) {_quantiles(vol[np.isfinite(vol)])}")
-    near = np.isfinite(vol) & (np.abs(vol - 1) <= 0.3)
-    print(f"volumes within +-30 % of the mesh volume: {near.mean():.1%} ({int(near.sum())} of {vol.size}; "
-          f"without a volume: {int((~np.isfinite(vol)).sum())})")
-    zf = np.abs(z[np.isfinite(z)])
-    print(f"|volume - mesh volume| within 1 / 2 volume_std: {np.mean(zf <= 1):.1%} / {np.mean(zf <= 2):.1%}")
-    if args.misses:
-        misses(rows, args.min_views)
+    if args.docs:
+        names = args.docs_conditions.split(",")
+        unknown = [n for n in names if n != "clean" and n not in CONDITIONS]
+        if unknown:
+            parser.error(f"unknown conditions: {', '.join(unknown)} (--list names them)")
+        results = {}
+        for name in names:
+            condition = None if name == "clean" else name
+            results[name] = run(args, condition)
+            report(args, condition, results[name])
+        path = Path(args.docs)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(docs_table(args, results))
+        print(f"wrote {path}")
+    else:
+        report(args, args.condition, run(args, args.condition))
     if args.sample:
         sample(args.method)
 

@@ -16,7 +16,8 @@ from scipy.spatial.transform import Rotation
 
 from shadowcorr import correspond
 from shadowcorr.stages import oriented_boxes
-from shadowcorr.stages._11_geometry import SolidSamples, _largest_components, _near_samples, _quaternions, _UpFrame
+from shadowcorr.stages._11_geometry import (SolidSamples, _largest_components, _near_samples, _quaternions, _UpFrame,
+                                            convex_hulls, min_area_angles)
 from shadowcorr.synth import SynthConfig, perturb
 from shadowcorr.synth.generate import synthesize
 from shadowcorr.synth.spheres import sphere_scene
@@ -124,3 +125,77 @@ def test_quaternions_turn_the_up_frame(up):
     quaternion = _quaternions(angle, frame)
     assert np.all(quaternion[:, 3] >= 0)
     np.testing.assert_allclose(Rotation.from_quat(quaternion).as_matrix(), rotation, atol=1e-12)
+
+
+def test_the_smallest_footprint_rectangle_of_a_turned_rectangle():
+    """Lattice points filling a rectangle with sides along (3, 4) and (-4, 3) (so its corners lie on the
+    lattice): the box's turn is that of a side, exactly, and it spans 5 a x 5 b."""
+    a, b = 7, 5
+    s, t = np.meshgrid(np.linspace(0, 1, 60), np.linspace(0, 1, 50))
+    corner = np.array([10, -3])
+    xy = corner + np.outer(s.ravel() * a, [3, 4]) + np.outer(t.ravel() * b, [-4, 3])
+    xy = np.round(xy).astype(np.int64)
+    xy = np.vstack([xy, corner, corner + a * np.array([3, 4]), corner + b * np.array([-4, 3]),
+                    corner + a * np.array([3, 4]) + b * np.array([-4, 3])])
+    # the lattice points inside the rectangle only (rounding may step outside)
+    rel = (xy - corner) @ np.array([[3, -4], [4, 3]]) / 25.0
+    xy = xy[(rel[:, 0] >= -1e-9) & (rel[:, 0] <= a + 1e-9) & (rel[:, 1] >= -1e-9) & (rel[:, 1] <= b + 1e-9)]
+    obj = np.zeros(len(xy), np.int64)
+    angle = min_area_angles(xy[:, 0], xy[:, 1], obj, 1)[0]
+    assert np.isclose(np.mod(angle, np.pi / 2), np.arctan2(4, 3), atol=1e-12)
+    points = np.column_stack([xy, np.zeros(len(xy))]).astype(np.float64)
+    _, size, rotation = oriented_boxes(points, obj, 1, (2, 1.0), cell=1.0)
+    np.testing.assert_allclose(size[0], [5 * a, 5 * b, 0.0], atol=1e-9)
+    np.testing.assert_allclose(abs(rotation[0, :2, 0] @ [3, 4]) / 5, 1.0, atol=1e-12)
+
+
+def test_convex_hulls_of_many_objects_at_once():
+    """Each object's hull against qhull's, in any input order, with single points, collinear points and
+    repeated points among them; every rectangle found is the smallest over a fine sweep of turns."""
+    from scipy.spatial import ConvexHull
+
+    rng = np.random.default_rng(3)
+    parts, owner = [], []
+    for k in range(40):
+        n = int(rng.integers(1, 5)) if k % 5 == 0 else int(rng.integers(5, 300))
+        spread = rng.normal(size=(2, 2)) * rng.uniform(0.3, 12)
+        if k % 7 == 0:
+            spread[:, 1] = 0.0  # collinear
+        parts.append(np.floor(rng.normal(size=(n, 2)) @ spread + rng.normal(size=2) * 40).astype(np.int64))
+        owner.append(np.full(n, k))
+    xy, obj = np.concatenate(parts), np.concatenate(owner)
+    shuffle = rng.permutation(len(obj))
+    hx, hy, ho = convex_hulls(xy[shuffle, 0], xy[shuffle, 1], obj[shuffle])
+    angle = min_area_angles(xy[shuffle, 0], xy[shuffle, 1], obj[shuffle], 41)
+    turns = np.linspace(0.0, np.pi / 2, 3001)
+    for k, p in enumerate(parts):
+        mine = list(zip(hx[ho == k].tolist(), hy[ho == k].tolist()))
+        assert len(mine) == len(set(mine))
+        if len(mine) >= 3:
+            assert set(mine) == set(map(tuple, p[ConvexHull(p).vertices].tolist()))
+            x, y = hx[ho == k], hy[ho == k]
+            assert np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0  # counter-clockwise
+        else:  # a point or a segment: its ends
+            assert set(mine) == {tuple(p[np.lexsort((p[:, 1], p[:, 0]))[i]]) for i in (0, -1)}
+
+        def area(turn):
+            c, s = np.cos(turn), np.sin(turn)
+            return np.ptp(p @ np.array([c, s])) * np.ptp(p @ np.array([-s, c]))
+
+        assert area(angle[k]) <= min(area(t) for t in turns) + 1e-9
+    assert angle[40] == 0.0  # no points
+
+
+def test_boxes_never_smaller_than_their_points():
+    """Every point lies in its object's box (boxes turned by the footprint's rectangle, any up axis)."""
+    rng = np.random.default_rng(8)
+    k = 25
+    counts = rng.integers(1, 200, k)
+    obj = np.repeat(np.arange(k), counts)
+    points = rng.normal(size=(obj.size, 3)) * rng.uniform(1, 60, (k, 3))[obj] + rng.normal(size=(k, 3))[obj] * 300
+    for up in [(2, 1.0), (1, -1.0)]:
+        centre, size, rotation = oriented_boxes(points, obj, k, up)
+        local = np.einsum("nji,nj->ni", rotation[obj], points - centre[obj])
+        assert np.all(np.abs(local) <= size[obj] / 2 + 1e-9)
+        assert np.all(size[:, 0] >= size[:, 1])
+        np.testing.assert_allclose(np.linalg.det(rotation), 1.0)

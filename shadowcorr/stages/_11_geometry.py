@@ -11,17 +11,23 @@ Once every segment has its object (stage 10), an object is described in 3D:
   such voxels (by solid volume): stray solid voxels that a mixed depth pixel's shadow or a
   neighbour's leave behind elsewhere would otherwise stretch the box.
 * **Oriented box** (:func:`oriented_boxes`): turned about the world's up axis
-  (``ShadowCorrConfig.up_axis``), with its first axis along the principal axis of the
-  footprint on the ground plane (the eigenvector of the larger eigenvalue of the
-  horizontal 2x2 covariance of the solid samples, or of the fused points for an object
-  without any; the longer side is named first), its second axis horizontal and orthogonal
-  to it, its third axis up.  It spans the solid samples (each the centre of a sub-cell,
-  padded by half a sub-cell) and the fused points that lie within one sub-cell of one of
-  the object's solid samples.  Points farther out are seen by no other view where they
-  are: mixed ("flying") depth pixels at the rock's outline, which float between the rock
-  and what lies behind it.  A rock rests on the ground, so a gravity-aligned box is what
-  a planner grasps or drives around; the footprint's principal axes make it tight for
-  elongated rocks.
+  (``ShadowCorrConfig.up_axis``), with its first axis along a side of the smallest-area
+  rectangle around the footprint on the ground plane (:func:`min_area_angles`: the convex
+  hull of the solid samples' columns on their own grid, or of the fused points on that grid
+  for an object without any, and the best rectangle along one of its edges; the longer side
+  is named first), its second axis horizontal and orthogonal to it, its third axis up.  It
+  spans the solid samples (each the centre of a sub-cell, padded by half a sub-cell) and the
+  fused points that lie within one sub-cell of one of the object's solid samples.  Points
+  farther out are seen by no other view where they are: mixed ("flying") depth pixels at the
+  rock's outline, which float between the rock and what lies behind it.  A rock rests on the
+  ground, so a gravity-aligned box is what a planner grasps or drives around; the smallest
+  footprint makes it tight for elongated and for blocky rocks alike.  On generated rock
+  fields (``benchmarks/bench_geometry.py``, the same construction on the rocks' meshes) it
+  took the boxes within 1.5x of the true box from 96.3 to 96.9 % of the objects on exact
+  images (95th percentile 1.45 -> 1.34), from 88.5 to 90.1 % with mixed depth pixels at
+  every outline, where the footprint's principal axis had turned them.  Boxes still too large
+  span space that no view can rule out: behind the rock in the one view that sees that side
+  and behind other rocks in every other view.
 * **Volume** (:func:`object_volumes`): the solid share of the voxels the object owns,
   plus half the share that only one view's background rules out, times the voxel volume.
   ``volume_std`` adds, in quadrature, that half (evidence a missed or eroded mask in one
@@ -35,7 +41,9 @@ Once every segment has its object (stage 10), an object is described in 3D:
 
 Everything is computed for all objects at once with per-object reductions over
 object-sorted arrays (``bincount``, ``reduceat``) and sorted integer keys (connected
-voxels, the points' neighbouring samples); nothing reads ground truth.
+voxels, the points' neighbouring samples, the footprints' grid columns; the smallest
+rectangles are a sorted search over the hulls' edges): n log n in the points; nothing reads
+ground truth.
 """
 
 from __future__ import annotations
@@ -134,17 +142,125 @@ class _UpFrame:
         return points[:, i1] * self.h1[i1], points[:, i2] * self.h2[i2]
 
 
-def _footprint_angle(points: np.ndarray, obj: np.ndarray, k: int, frame: _UpFrame) -> np.ndarray:
-    """Per object: the angle from h1 of the footprint's principal axis (the horizontal covariance's
-    eigenvector of the larger eigenvalue); 0 for objects without points."""
-    safe = np.maximum(np.bincount(obj, minlength=k), 1).astype(np.float64)
+def _chain(x: np.ndarray, y: np.ndarray, obj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each object's run of points (``x`` strictly rising or falling within a run) with every inner point
+    that makes no strict left turn dropped, pass by pass, until none is left: one side of its convex hull.
+
+    A point on or below the chord of its two neighbours is no hull vertex whatever the neighbours are, so
+    a pass drops all such points at once; the chain only rises where a point goes, and it stops as a
+    concave chain with every dropped point under it.  Each pass costs the chain's length; a chain loses a
+    dent's points from both sides each pass (a few passes on a footprint).
+    """
+    while x.size > 2:
+        inner = np.flatnonzero(np.r_[False, (obj[1:-1] == obj[:-2]) & (obj[1:-1] == obj[2:]), False])
+        turn = ((x[inner] - x[inner - 1]) * (y[inner + 1] - y[inner - 1])
+                - (y[inner] - y[inner - 1]) * (x[inner + 1] - x[inner - 1]))
+        drop = inner[turn <= 0]
+        if drop.size == 0:
+            break
+        keep = np.ones(x.size, dtype=bool)
+        keep[drop] = False
+        x, y, obj = x[keep], y[keep], obj[keep]
+    return x, y, obj
+
+
+def convex_hulls(gx: np.ndarray, gy: np.ndarray, obj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each object's convex hull of integer points (``gx``, ``gy``): its vertices counter-clockwise, sorted by
+    object, as (x, y, object).  No vertex repeats; a hull of one point is that point, of collinear points
+    their two ends.
+
+    Andrew's monotone chains on each grid column's lowest and highest point (one sort), each chain cut
+    down by :func:`_chain` for all objects at once; integer cross products are exact.
+    """
+    order = np.lexsort((gy, gx, obj))
+    gx, gy, obj = gx[order], gy[order], obj[order]
+    if gx.size == 0:
+        return gx, gy, obj
+    new = np.r_[True, (gx[1:] != gx[:-1]) | (obj[1:] != obj[:-1])]
+    first = np.flatnonzero(new)
+    last = np.r_[first[1:] - 1, gx.size - 1]
+    # lower chain: each column's lowest point, left to right; upper chain: each column's highest, right to left
+    lx, ly, lo = _chain(gx[first], gy[first], obj[first])
+    ux, uy, uo = _chain(gx[last][::-1], gy[last][::-1], obj[last][::-1])
+    x, y, o = np.r_[lx, ux], np.r_[ly, uy], np.r_[lo, uo]
+    part = np.r_[np.zeros(lx.size, np.int64), np.ones(ux.size, np.int64)]
+    order = np.lexsort((np.r_[lx, -ux], part, o))  # per object: the lower chain, then the upper one
+    x, y, o = x[order], y[order], o[order]
+    # an end column of a single point ends one chain and starts the other: keep it once
+    first_of = np.r_[True, o[1:] != o[:-1]]
+    last_of = np.r_[o[1:] != o[:-1], True]
+    head = np.flatnonzero(first_of)[np.cumsum(first_of) - 1]  # each vertex's object's first vertex
+    same_as_previous = np.r_[False, (x[1:] == x[:-1]) & (y[1:] == y[:-1])] & ~first_of
+    same_as_first = last_of & ~first_of & (x == x[head]) & (y == y[head])
+    keep = ~same_as_previous & ~same_as_first
+    return x[keep], y[keep], o[keep]
+
+
+def min_area_angles(gx: np.ndarray, gy: np.ndarray, obj: np.ndarray, num_objects: int) -> np.ndarray:
+    """Per object: the angle from the x axis of a side of the smallest-area rectangle around its integer
+    points (``gx``, ``gy``), in (-pi, pi]; 0 for objects without points or with a single one.
+
+    One side of that rectangle lies along an edge of the convex hull (Freeman and Shapira, 1975), so it
+    is the best of the rectangles along the hull's edges: for each edge the hull vertices farthest
+    ahead, behind and away from it, found by rotating calipers, here a sorted search of the edges'
+    outward normals (each vertex is the farthest in the directions between the normals of its two
+    edges).  All objects at once; cost O(h log h) on h hull vertices.
+    """
+    k = num_objects
+    angle = np.zeros(k)
+    x, y, o = convex_hulls(gx.astype(np.int64), gy.astype(np.int64), obj.astype(np.int64))
+    counts = np.bincount(o, minlength=k)
+    start = segment_starts(o, k)
+    nxt = np.arange(1, x.size + 1)
+    wrap = np.r_[o[1:] != o[:-1], True] if x.size else np.zeros(0, dtype=bool)
+    nxt[wrap] = start[o[wrap]]
+    edge = np.flatnonzero(counts[o] > 1)  # edge i runs from vertex i to vertex nxt[i]
+    if edge.size == 0:
+        return angle
+    e = o[edge]
+    ex, ey = x[nxt[edge]] - x[edge], y[nxt[edge]] - y[edge]
+    theta = np.arctan2(ey, ex)
+    # the outward normal (theta - pi/2) of each edge, as an angle past its object's first edge's normal:
+    # rising along a counter-clockwise hull, within [0, 2 pi)
+    base = np.zeros(k)
+    base[o[start[counts > 1]]] = theta[np.searchsorted(edge, start[counts > 1])] - np.pi / 2.0
+    turn = 2.0 * np.pi
+    normal = np.mod(theta - np.pi / 2.0 - base[e], turn)
+    normal[np.searchsorted(edge, start[counts > 1])] = 0.0
+    key = e * (2.0 * turn) + normal  # sorted: objects ascending, then the normals
+
+    def farthest(direction: np.ndarray) -> np.ndarray:
+        """Per edge: the vertex of its object's hull farthest in ``direction`` (angles)."""
+        rel = np.mod(direction - base[e], turn)
+        j = np.searchsorted(key, e * (2.0 * turn) + rel) - np.searchsorted(e, e)  # edges whose normal comes first
+        return start[e] + np.mod(j, counts[e])
+
+    ahead, behind, away = farthest(theta), farthest(theta + np.pi), farthest(theta + np.pi / 2.0)
+    length2 = ex.astype(np.float64) ** 2 + ey.astype(np.float64) ** 2
+    along = (x[ahead] - x[behind]) * ex + (y[ahead] - y[behind]) * ey  # x |e|
+    across = (y[away] - y[edge]) * ex - (x[away] - x[edge]) * ey  # x |e|
+    area = along.astype(np.float64) * across / length2
+    best = np.lexsort((edge, area, e))
+    head = best[np.r_[True, e[best][1:] != e[best][:-1]]]
+    angle[e[head]] = theta[head]
+    return angle
+
+
+def _footprint_angle(points: np.ndarray, obj: np.ndarray, k: int, frame: _UpFrame, cell: float) -> np.ndarray:
+    """Per object: the angle from h1 of a side of the smallest-area rectangle around its footprint, the
+    points' horizontal coordinates on a grid of ``cell`` (:func:`min_area_angles`); 0 for objects without
+    points."""
     x, y = frame.horizontal(points)
-    mx, my = np.bincount(obj, weights=x, minlength=k) / safe, np.bincount(obj, weights=y, minlength=k) / safe
-    dx, dy = x - mx[obj], y - my[obj]
-    cxx = np.bincount(obj, weights=dx * dx, minlength=k)
-    cxy = np.bincount(obj, weights=dx * dy, minlength=k)
-    cyy = np.bincount(obj, weights=dy * dy, minlength=k)
-    return 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
+    return min_area_angles(np.floor(x / cell).astype(np.int64), np.floor(y / cell).astype(np.int64), obj, k)
+
+
+def _lattice_angle(samples: "SolidSamples", k: int, frame: _UpFrame) -> np.ndarray:
+    """:func:`_footprint_angle` of the solid samples on their own grid (their sub-cell indices: exact)."""
+    i1, i2 = int(np.argmax(np.abs(frame.h1))), int(np.argmax(np.abs(frame.h2)))
+    lattice = samples.lattice
+    gx = lattice[:, i1] * int(np.sign(frame.h1[i1]))
+    gy = lattice[:, i2] * int(np.sign(frame.h2[i2]))
+    return min_area_angles(gx, gy, samples.object, k)
 
 
 def _local(points: np.ndarray, obj: np.ndarray, cos: np.ndarray, sin: np.ndarray, frame: _UpFrame) -> np.ndarray:
@@ -185,15 +301,21 @@ def _boxes(lo: np.ndarray, hi: np.ndarray, angle: np.ndarray,
     return center, size, rotation
 
 
-def oriented_boxes(points: np.ndarray, obj: np.ndarray, num_objects: int,
-                   up: tuple[int, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Boxes around each object's points (sorted by object), turned about the world axis ``up`` = (index, sign).
+def oriented_boxes(points: np.ndarray, obj: np.ndarray, num_objects: int, up: tuple[int, float],
+                   cell: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Boxes around each object's points (sorted by object), turned about the world axis ``up`` = (index, sign)
+    along a side of the smallest-area rectangle around the points' footprint, taken on a grid of ``cell``
+    (default: a 1024th of the points' largest extent).  The boxes span all the points: the grid only
+    chooses the turn.
 
     Returns centres (K, 3), sizes (K, 3) [long, short, vertical] and rotation matrices (K, 3, 3)
     whose columns are the box axes in the world; NaN for objects without points.
     """
     frame = _UpFrame.of(up)
-    angle = _footprint_angle(points, obj, num_objects, frame)
+    if cell is None:
+        span = float(np.ptp(points, axis=0).max()) if points.shape[0] else 0.0
+        cell = span / 1024.0 if span > 0 else 1.0
+    angle = _footprint_angle(points, obj, num_objects, frame, cell)
     local = _local(points, obj, np.cos(angle), np.sin(angle), frame)
     lo = segment_min(local, obj, num_objects, empty=np.nan)
     hi = segment_max(local, obj, num_objects, empty=np.nan)
@@ -397,16 +519,18 @@ def object_geometry(cloud: ObjectPoints, occupancy: ShadowOccupancy | None, seg_
     samples = solid_samples(occupancy, seg_object, config.voxel_size, unit_scale)
     points, obj = cloud.points, cloud.object
     rejected = np.zeros(0, dtype=np.int64)
+    # the footprint's grid: the solid samples' (fused points are snapped to it too)
+    cell = config.voxel_size / unit_scale / config.volume_subdivisions
     if samples is None or samples.points.shape[0] == 0:
-        angle = _footprint_angle(points, obj, k, frame)
+        angle = _footprint_angle(points, obj, k, frame, cell)
         local = _local(points, obj, np.cos(angle), np.sin(angle), frame)
         lo = segment_min(local, obj, k, empty=np.nan)
         hi = segment_max(local, obj, k, empty=np.nan)
     else:
         has_samples = np.bincount(samples.object, minlength=k) > 0
-        angle = _footprint_angle(samples.points, samples.object, k, frame)
+        angle = _lattice_angle(samples, k, frame)
         if not has_samples.all():
-            angle = np.where(has_samples, angle, _footprint_angle(points, obj, k, frame))
+            angle = np.where(has_samples, angle, _footprint_angle(points, obj, k, frame, cell))
         cos, sin = np.cos(angle), np.sin(angle)
         pad = samples.spacing / 2.0
         local_samples = _local(samples.points, samples.object, cos, sin, frame)
