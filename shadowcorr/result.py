@@ -37,10 +37,10 @@ class SegmentLabel(BaseModel):
 class OrientedBox(BaseModel):
     """A box around an object, turned about the world's up axis (bundle units).
 
-    It spans the object's fused surface points and the centres of its voxels that are at least
-    half solid.  Its axes are, in order, the longer and the shorter principal axis of the
-    footprint on the ground plane, then the up axis (``ShadowCorrConfig.up_axis``):
-    ``size`` is the extent along each, ``quaternion`` turns the box frame into the world frame.
+    It spans the object's solid samples and the fused surface points near them.  Its axes are,
+    in order, the longer and the shorter side of the smallest-area rectangle around the
+    footprint on the ground plane, then the up axis (``ShadowCorrConfig.up_axis``): ``size`` is
+    the extent along each, ``quaternion`` turns the box frame into the world frame.
     """
 
     center: list[float] = Field(description="box centre [x, y, z]")
