@@ -168,16 +168,17 @@ class ShadowCorrConfig(BaseModel):
                                       "on a mask (see shadowcorr.stages.split_mask_ids)")
     fusion_split_cover: float = Field(0.1, gt=0, le=1, description="... while the segment they land on lands back on "
                                       "each of them with this share of its landings in their view")
-    fusion_seam_gap: int = Field(8, ge=0, description="widest run of unlabelled pixels between two masks of one "
-                                 "view that is still read as their shared border (eroded masks leave one; 0: seams "
-                                 "are not read, see shadowcorr.stages.smooth_seams)")
-    fusion_seam_tolerance: float = Field(0.004, ge=0, description="median depth step across a seam, relative to "
+    fusion_seam_gap: int = Field(16, ge=0, description="widest run of unlabelled pixels between two masks of one "
+                                 "view that is still read as their shared border (eroded masks leave one: 3 px of "
+                                 "erosion either side of a cut, 6-9 px across it and up to 1.4 times that along a "
+                                 "row or column; 0: seams are not read, see shadowcorr.stages.smooth_seams)")
+    fusion_seam_tolerance: float = Field(0.006, ge=0, description="median depth step across a seam, relative to "
                                          "depth, below which two masks of one view read as one smooth surface (a "
                                          "candidate split mask) ...")
-    fusion_seam_noise: float = Field(1.0, ge=0, description="... when this many standard errors of that median, "
+    fusion_seam_noise: float = Field(1.25, ge=0, description="... when this many standard errors of that median, "
                                      "under the view's estimated depth noise, are within the same tolerance (0: "
                                      "no such check)")
-    fusion_seam_min_pixels: int = Field(20, ge=1, description="pixel pairs sampled along a seam before it is read")
+    fusion_seam_min_pixels: int = Field(30, ge=1, description="pixel pairs sampled along a seam before it is read")
     fusion_merge_share: float = Field(0.25, ge=0, le=0.5, description="a segment whose landings in another view "
                                       "split, at least this share on each, over two segments that both land mostly "
                                       "on it and that a third view sees apart, is read as a merged mask: landings on "

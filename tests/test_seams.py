@@ -73,16 +73,39 @@ def test_noisy_depth_needs_a_longer_seam():
     seams = _view_seams(_image(labels), noisy, config)
     assert seams.first.tolist() == [0]
     n = seams.samples[0]
-    assert seams.uncertainty[0] == pytest.approx(2.5 * a * 750.0 / np.sqrt(n), rel=0.3)
+    # Rows walk 4 pixels from one half's border to the other's; 10 pixels are read a side from
+    # 1 inside: the sides' centroids lie 15 pixels apart.  Per step sqrt(2/10 + 15^2 / (2 * 82.5))
+    # sigma; the median of n steps 1.25 times that / sqrt(n).
+    per_step = np.sqrt(2.0 / 10 + 15.0**2 / (2 * 82.5))
+    assert seams.uncertainty[0] == pytest.approx(1.25 * per_step * a * 750.0 / np.sqrt(n), rel=0.3)
     short = labels.copy()
-    short[:94] = -1  # the halves now share 6 rows of their border
-    few = config.with_options(fusion_seam_min_pixels=4)
+    short[:97] = -1  # the halves now share 3 rows of their border
+    few = config.with_options(fusion_seam_min_pixels=3)
     assert _view_seams(_image(short), noisy, few).first.size == 0
     assert _view_seams(_image(short), clean, few).first.tolist() == [0]
     stepped = noisy.copy()
     stepped[labels == 1] *= 1.03
     assert _view_seams(_image(labels), stepped, config).first.size == 0
     assert _view_seams(_image(labels), stepped, config.with_options(fusion_seam_noise=0.0)).first.size == 0
+
+
+@pytest.mark.parametrize("gap", [3, 12])
+def test_the_stated_uncertainty_is_the_spread_of_the_median_step(gap):
+    """Over independent noise draws on one surface, the median step of a seam scatters by the
+    uncertainty the stage states for it (the noise model of the side fits, not a guess)."""
+    rng = np.random.default_rng(11)
+    clean = _tilted_plane(z0=750.0)
+    a = 0.01 / 750.0
+    labels = _two_halves(gap)
+    config = ShadowCorrConfig(fusion_seam_tolerance=1.0, fusion_seam_noise=1e-9, fusion_seam_gap=16)
+    steps, stated = [], []
+    for _ in range(60):
+        seams = _view_seams(_image(labels), clean + rng.normal(size=clean.shape) * a * clean**2, config)
+        assert seams.first.tolist() == [0]
+        steps.append(seams.step[0])
+        stated.append(seams.uncertainty[0])
+    assert abs(np.mean(steps)) < 3 * np.std(steps) / np.sqrt(len(steps))  # unbiased on a plane
+    assert np.std(steps) == pytest.approx(np.median(stated), rel=0.3)
 
 
 def test_mixed_pixels_on_the_contour_do_not_make_a_seam():
