@@ -4,15 +4,23 @@
     python scripts/fit_support.py --out /tmp/support.json --scenes 6
 
 Generated scenes (dataset seed 5005: neither the shipped network's training seeds nor the
-quality benchmark's 9001) on five rigs are labelled by ``fused`` clean, under single errors and
-under the combined errors of the quality benchmark.  For every segment with ground truth the
-features of :data:`shadowcorr.stages.SUPPORT_FEATURES` and whether it sits in the wrong place
-(the benchmark's ``wrong_segments``) are recorded; a logistic regression (scikit-learn,
-standardised features) is fitted on two thirds of the scenes and checked on the rest (all of
-them, and the clean, single-error and combined-error runs apart): expected calibration error
-(10 bins), AUROC and the precision / recall of "support below the threshold" as a flag for
-wrong segments.  The threshold is the highest support at which the flag still has
-``--precision`` on the fitted scenes' combined-error runs.  Per-run features are cached in ``--work`` with their
+quality benchmark's 9001) on the quality benchmark's eight synthetic rigs are labelled by
+``fused`` clean, under single errors and under the combined errors of the quality benchmark
+(the first ``--scenes`` of each rig), and under the combined errors alone (the next ones, up to
+``--combined-scenes``: the flag is for data with every error at once, and its wrong segments
+are what the fit needs most).  For every segment with ground truth the features of
+:data:`shadowcorr.stages.SUPPORT_FEATURES` and whether it sits in the wrong place (the
+benchmark's ``wrong_segments``) are recorded.  The model is fitted on two thirds of the scenes
+and checked on the rest (all of them, and the clean, single-error and combined-error runs
+apart): expected calibration error (10 bins), AUROC and the precision / recall of "support
+below the threshold" as a flag for wrong segments.  It is ``--trees`` boosted regression trees
+(scikit-learn's histogram gradient boosting, log loss, at most 7 leaves each: which evidence
+matters depends on the rest of it, e.g. a thin share of its view's points means little alone
+and much when another mask of that view sits in the group), shipped as plain node tables; with
+``--trees 0`` a logistic regression on the standardised features.  The threshold is the highest
+support at which the flag still has ``--precision`` on the fitted scenes' combined-error runs,
+read from out-of-fold supports (three folds of those scenes: trees fit their own scenes closer
+than new ones).  Per-run features are cached in ``--work`` with their
 names (saved every 50 runs), so an interrupted run resumes, a rerun only fits, and a fit on
 fewer features reuses them; ``--runs-only`` fills the cache and fits nothing.
 """
@@ -24,7 +32,9 @@ import json
 import multiprocessing as mp
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +44,8 @@ sys.path.insert(0, str(REPO))
 from tests.harness import load_bench_quality  # noqa: E402
 
 SEED = 5005
-RIGS = ("syn:4v", "syn:3v-arc90", "syn:8v", "syn:4v-low", "syn:6v-uneven")
+RIGS = ("syn:4v", "syn:3v-arc90", "syn:8v", "syn:4v-low", "syn:6v-uneven", "syn:2v-opposite", "syn:4v-high",
+        "syn:4v-720p")
 CONDITIONS = (None, "split20%", "merge10%", "erode5", "drop10%", "depth2%", "rot2", "mild", "field", "harsh")
 COMBINED = ("mild", "field", "harsh")
 
@@ -92,9 +103,64 @@ def flag_scores(support: np.ndarray, wrong: np.ndarray, below: float) -> tuple[f
     return hit / max(int(flagged.sum()), 1), hit / max(int(wrong.sum()), 1)
 
 
+def tree_tables(model: Any) -> Any:
+    """A fitted ``HistGradientBoostingClassifier`` (binary) as :class:`SupportTrees` node tables,
+    and its baseline logit."""
+    from shadowcorr.stages import SupportTrees
+
+    nodes = [predictors[0].nodes for predictors in model._predictors]
+    t, n = len(nodes), max(len(tree) for tree in nodes)
+    feature, left, right = (np.zeros((t, n), np.int64) for _ in range(3))
+    threshold, value = np.zeros((t, n)), np.zeros((t, n))
+    depth = 0
+    for i, tree in enumerate(nodes):
+        leaf, index = tree["is_leaf"].astype(bool), np.arange(len(tree))
+        feature[i, :len(tree)] = np.where(leaf, 0, tree["feature_idx"])
+        threshold[i, :len(tree)] = np.where(leaf, 0.0, tree["num_threshold"])
+        left[i, :len(tree)] = np.where(leaf, index, tree["left"])
+        right[i, :len(tree)] = np.where(leaf, index, tree["right"])
+        value[i, :len(tree)] = np.where(leaf, tree["value"], 0.0)
+        left[i, len(tree):] = right[i, len(tree):] = np.arange(len(tree), n)
+        depth = max(depth, int(tree["depth"].max()))
+    return SupportTrees(feature, threshold, left, right, value, depth), float(np.ravel(model._baseline_prediction)[0])
+
+
+def model_text(data: dict) -> str:
+    """The model file: one key a line, the trees' node tables one tree a line."""
+    lines = [f" {json.dumps(key)}: {json.dumps(value)}" for key, value in data.items() if key != "trees"]
+    if "trees" in data:
+        tables = [f"  {json.dumps(key)}: " + (json.dumps(value) if not isinstance(value, list) else
+                                              "[\n   " + ",\n   ".join(json.dumps(row) for row in value) + "\n  ]")
+                  for key, value in data["trees"].items()]
+        lines.append(' "trees": {\n' + ",\n".join(tables) + "\n }")
+    return "{\n" + ",\n".join(lines) + "\n}\n"
+
+
+def fit_calibration(x: np.ndarray, wrong: np.ndarray, trees: int, fitted_on: str) -> Any:
+    """The model on (x, wrong), its threshold still unset (0.5)."""
+    from sklearn.ensemble import HistGradientBoostingClassifier
+    from sklearn.linear_model import LogisticRegression
+
+    from shadowcorr.stages import SUPPORT_FEATURES, SupportCalibration
+
+    f = len(SUPPORT_FEATURES)
+    if trees:
+        model = HistGradientBoostingClassifier(max_iter=trees, learning_rate=0.05, max_leaf_nodes=7,
+                                               min_samples_leaf=40, random_state=0).fit(x, ~wrong)
+        tables, baseline = tree_tables(model)
+        return SupportCalibration(SUPPORT_FEATURES, np.zeros(f), np.ones(f), np.zeros(f), baseline, 0.5, fitted_on,
+                                  tables)
+    mean, scale = x.mean(axis=0), np.maximum(x.std(axis=0), 1e-9)
+    model = LogisticRegression(C=1.0, max_iter=1000).fit((x - mean) / scale, ~wrong)
+    return SupportCalibration(SUPPORT_FEATURES, mean, scale, model.coef_[0], float(model.intercept_[0]), 0.5, fitted_on)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenes", type=int, default=12, help="generated scenes per rig")
+    p.add_argument("--scenes", type=int, default=12, help="generated scenes per rig under every condition")
+    p.add_argument("--combined-scenes", type=int, default=24,
+                   help="generated scenes per rig under the combined errors (the first --scenes of them included)")
+    p.add_argument("--trees", type=int, default=200, help="boosted trees (0: a logistic regression)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--runs-only", action="store_true", help="compute the runs' features, fit nothing")
     p.add_argument("--precision", type=float, default=0.55,
@@ -103,10 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", default=str(REPO / "out" / "fit_support"), help="scene cache and per-run features")
     p.add_argument("--out", default=str(REPO / "shadowcorr" / "models" / "support.json"))
     args = p.parse_args(argv)
-    from sklearn.linear_model import LogisticRegression
     from sklearn.metrics import roc_auc_score
 
-    from shadowcorr.stages import SUPPORT_FEATURES, SupportCalibration
+    from shadowcorr.stages import SUPPORT_FEATURES
 
     bench = load_bench_quality()
     work = Path(args.work)
@@ -121,9 +186,10 @@ def main(argv: list[str] | None = None) -> int:
                     done[key] = (z[key + "|features"][:, columns], z[key + "|wrong"])
     jobs = []
     for rig in RIGS:
-        paths = bench.ensure_scenes(work / "scenes", rig, bench.synth_config(rig, {}), args.scenes, SEED, args.workers)
+        paths = bench.ensure_scenes(work / "scenes", rig, bench.synth_config(rig, {}),
+                                    max(args.scenes, args.combined_scenes), SEED, args.workers)
         for index, path in enumerate(paths):
-            for condition in CONDITIONS:
+            for condition in CONDITIONS if index < args.scenes else COMBINED:
                 key = f"{rig}/{index}/{condition or 'clean'}"
                 if key not in done:
                     jobs.append((key, str(path), index, condition))
@@ -150,26 +216,33 @@ def main(argv: list[str] | None = None) -> int:
         return (np.concatenate([done[k][0] for k in keys]),
                 np.concatenate([done[k][1] for k in keys]).astype(bool))
 
-    wanted = [f"{rig}/{i}/{c or 'clean'}" for rig in RIGS for i in range(args.scenes) for c in CONDITIONS]
+    wanted = [f"{rig}/{i}/{c or 'clean'}" for rig in RIGS for i in range(max(args.scenes, args.combined_scenes))
+              for c in (CONDITIONS if i < args.scenes else COMBINED)]
     fit_keys = [k for k in wanted if int(k.split("/")[1]) % 3 != 2]
     check_keys = [k for k in wanted if int(k.split("/")[1]) % 3 == 2]
     x, wrong = stack(fit_keys)
-    mean, scale = x.mean(axis=0), np.maximum(x.std(axis=0), 1e-9)
-    model = LogisticRegression(C=1.0, max_iter=1000).fit((x - mean) / scale, ~wrong)
-    calibration = SupportCalibration(
-        SUPPORT_FEATURES, mean, scale, model.coef_[0], float(model.intercept_[0]), 0.5,
-        f"fused on {len(RIGS)} rigs x {args.scenes} generated scenes (seed {SEED}) x {len(CONDITIONS)} conditions "
-        f"(clean, single and combined errors), {x.shape[0]} segments of which {int(wrong.sum())} wrong; "
-        f"scripts/fit_support.py")
+    what = "boosted trees" if args.trees else "logistic regression"
+    fitted_on = (f"fused on {len(RIGS)} rigs x {args.scenes} generated scenes (seed {SEED}) x {len(CONDITIONS)} "
+                 f"conditions (clean, single and combined errors) and {args.combined_scenes - args.scenes} more scenes "
+                 f"per rig under combined errors, {x.shape[0]} segments of which {int(wrong.sum())} wrong; {what}; "
+                 f"scripts/fit_support.py")
     # The highest threshold whose flag keeps the precision on the fitted scenes' combined-error
-    # runs: the field's data has every error at once, and the flag is for the field.
-    xc, wrong_c = stack([k for k in fit_keys if k.split("/")[2] in COMBINED])
-    support = calibration.probability(xc)
+    # runs (the field's data has every error at once, and the flag is for the field), read from
+    # supports of a model fitted without the scenes they come from.
+    combined = [k for k in fit_keys if k.split("/")[2] in COMBINED]
+    support, wrong_c = [], []
+    for fold in range(3):
+        def in_fold(k: str) -> bool:
+            return int(k.split("/")[1]) // 3 % 3 == fold
+        held = fit_calibration(*stack([k for k in fit_keys if not in_fold(k)]), args.trees, "")
+        xf, wf = stack([k for k in combined if in_fold(k)])
+        support.append(held.probability(xf))
+        wrong_c.append(wf)
+    support, wrong_c = np.concatenate(support), np.concatenate(wrong_c)
     candidates = np.unique(np.round(support, 3))
     ok = [t for t in candidates if flag_scores(support, wrong_c, t)[0] >= args.precision and (support < t).any()]
     check_below = float(max(ok)) if ok else 0.5
-    calibration = SupportCalibration(calibration.features, mean, scale, calibration.coef, calibration.intercept,
-                                     check_below, calibration.fitted_on)
+    calibration = replace(fit_calibration(x, wrong, args.trees, fitted_on), check_below=check_below)
 
     print(f"\nfitted on {x.shape[0]} segments ({wrong.mean() * 100:.1f} % wrong); threshold: support < {check_below:.3f}")
     print("| scenes | segments | wrong % | ECE | AUROC | flag precision % | flag recall % |")
@@ -185,10 +258,18 @@ def main(argv: list[str] | None = None) -> int:
         auroc = f"{roc_auc_score(ws, -ps):.3f}" if 0 < ws.sum() < ws.size else "–"
         print(f"| {name} | {len(ws)} | {ws.mean() * 100:.1f} | {expected_calibration_error(ps, ~ws):.4f} | "
               f"{auroc} | {precision * 100:.1f} | {recall * 100:.1f} |")
-    print("\ncoefficients (standardised features):")
-    for name, c in zip(SUPPORT_FEATURES, calibration.coef):
-        print(f"  {name:<22} {c:+.3f}")
-    Path(args.out).write_text(json.dumps(calibration.to_json(), indent=1) + "\n")
+    print("\ncoefficients (standardised features):" if not args.trees else "")
+    if args.trees:
+        tables = calibration.trees
+        split = tables.left != np.arange(tables.left.shape[1])[None, :]
+        used = np.bincount(tables.feature[split], minlength=len(SUPPORT_FEATURES))
+        print("splits per feature:")
+        for name, c in zip(SUPPORT_FEATURES, used):
+            print(f"  {name:<22} {c}")
+    else:
+        for name, c in zip(SUPPORT_FEATURES, calibration.coef):
+            print(f"  {name:<22} {c:+.3f}")
+    Path(args.out).write_text(model_text(calibration.to_json()))
     print(f"wrote {args.out}")
     return 0
 

@@ -1,16 +1,28 @@
 """The calibrated support of ``fused``: the packaged calibration, its arithmetic against
-scikit-learn's, what it says on the real sample, and the quality benchmark's calibration error."""
+scikit-learn's (logistic regression and boosted trees), what it says on the real sample, the
+features it reads, and the quality benchmark's calibration error."""
 
 from __future__ import annotations
+
+import importlib.util
+import json
 
 import numpy as np
 import pytest
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model
-from shadowcorr.stages import SUPPORT_FEATURES, SupportCalibration, support_calibration
+from shadowcorr.stages import SUPPORT_FEATURES, SupportCalibration, support_calibration, support_features
 
-from .harness import load_bench_quality
+from .harness import REPO_ROOT, load_bench_quality
 from .paths import SAMPLE_DIR
+
+
+def _fit_script():
+    """``scripts/fit_support.py`` as a module (its node tables and model file are what ships)."""
+    spec = importlib.util.spec_from_file_location("fit_support", REPO_ROOT / "scripts" / "fit_support.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_the_packaged_calibration_reads_this_versions_features():
@@ -19,8 +31,15 @@ def test_the_packaged_calibration_reads_this_versions_features():
     assert calibration.coef.shape == calibration.mean.shape == calibration.scale.shape == (len(SUPPORT_FEATURES),)
     assert (calibration.scale > 0).all() and 0.0 < calibration.check_below < 1.0
     assert "scripts/fit_support.py" in calibration.fitted_on
-    # The evidence margin for the segment's own group raises the probability that it sits right.
-    assert calibration.coef[SUPPORT_FEATURES.index("margin")] > 0
+    trees = calibration.trees
+    assert trees is not None and trees.depth >= 1
+    assert trees.feature.shape == trees.threshold.shape == trees.left.shape == trees.right.shape == trees.value.shape
+    assert 0 <= trees.feature.min() and trees.feature.max() < len(SUPPORT_FEATURES)
+    # Two grouped segments that land on each other sit right; the stray that its own evidence
+    # pulls towards them (alone, 50 of its 60 landings on their group) is worth checking.
+    support = calibration.probability(support_features(_two_groups_and_a_stray(), ShadowCorrConfig()))
+    assert (support[:2] > calibration.check_below).all()
+    assert support[2] < calibration.check_below
 
 
 def test_probability_is_the_logistic_regression_that_was_fitted():
@@ -36,6 +55,25 @@ def test_probability_is_the_logistic_regression_that_was_fitted():
     np.testing.assert_allclose(calibration.probability(x), expected, rtol=1e-10)
     again = SupportCalibration.from_json(calibration.to_json())
     np.testing.assert_allclose(again.probability(x), expected, rtol=1e-10)
+
+
+def test_trees_are_the_boosted_model_that_was_fitted():
+    """The node tables the fit writes give scikit-learn's probabilities, also read back from the model file."""
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    fit = _fit_script()
+    rng = np.random.default_rng(2)
+    f = len(SUPPORT_FEATURES)
+    x = rng.normal(size=(3000, f)) * rng.uniform(0.5, 3.0, f)
+    y = (x[:, 0] * x[:, 3] - np.abs(x[:, 5]) + rng.normal(size=3000)) > -1.0
+    model = HistGradientBoostingClassifier(max_iter=30, max_leaf_nodes=7, random_state=0).fit(x, y)
+    tables, baseline = fit.tree_tables(model)
+    calibration = SupportCalibration(SUPPORT_FEATURES, np.zeros(f), np.ones(f), np.zeros(f), baseline, 0.4, "t", tables)
+    expected = model.predict_proba(x)[:, 1]
+    np.testing.assert_allclose(calibration.probability(x), expected, rtol=1e-10)
+    again = SupportCalibration.from_json(json.loads(fit.model_text(calibration.to_json())))
+    np.testing.assert_allclose(again.probability(x), expected, rtol=1e-10)
+    assert again.check_below == 0.4
 
 
 @pytest.mark.skipif(not SAMPLE_DIR.is_dir(), reason="sample data not available")
@@ -112,3 +150,49 @@ def test_a_calibration_on_some_features_reads_them_by_name():
     expected = 1.0 / (1.0 + np.exp(-(0.3 + picked @ np.array([-1.0, 2.0, -0.5]))))
     np.testing.assert_allclose(calibration.probability(full), expected)
     np.testing.assert_allclose(calibration.probability(picked), expected)
+
+
+def _a_group_with_two_masks_of_one_view():
+    """Three segments in one group: 0 (view 0, mask 1, 100 sample points) and 1 (view 0, mask 2,
+    50 points) both land on 2 (view 1, 100 points), 2 lands mostly on 0."""
+    from shadowcorr.stages._03_surface_evidence import SurfaceEvidence
+    from shadowcorr.stages._09_grouping import EvidenceGroups, SegmentGraph
+
+    visible, on_mask = np.zeros((3, 2), dtype=np.int64), np.zeros((3, 2), dtype=np.int64)
+    visible[0, 1], visible[1, 1], visible[2, 0] = 90, 40, 95
+    on_mask[0, 1], on_mask[1, 1], on_mask[2, 0] = 85, 20, 90
+    source, target, count = np.array([0, 1, 2, 2]), np.array([2, 2, 0, 1]), np.array([80, 5, 60, 10])
+    samples = np.array([100, 50, 100])
+    surface = SurfaceEvidence(samples, np.zeros((250, 3), np.float32), visible, on_mask, source, target, count)
+    none = np.zeros(0, dtype=np.int64)
+    graph = SegmentGraph(np.array([0, 0, 1]), np.array([1, 2, 1]), surface, none, none, np.zeros(0), np.zeros(0))
+    return EvidenceGroups(np.array([4, 4, 4]), graph, np.zeros(3, dtype=bool))
+
+
+def test_support_features_read_two_masks_of_one_view_in_a_group():
+    x = support_features(_a_group_with_two_masks_of_one_view(), ShadowCorrConfig())
+    column = {name: x[:, i] for i, name in enumerate(SUPPORT_FEATURES)}
+    np.testing.assert_array_equal(column["view_rivals"], [1, 1, 0])
+    np.testing.assert_allclose(column["view_share"], [100 / 150, 50 / 150, 1.0])
+    np.testing.assert_array_equal(column["group_rival_views"], [1, 1, 1])
+    # Of its points visible where the rest of the group is, the share landing on the group, and on no mask.
+    own_cover = np.array([80 / 90, 5 / 40, 70 / 95])
+    np.testing.assert_allclose(column["own_cover"], own_cover)
+    np.testing.assert_allclose(column["off_mask"], [1 - 85 / 90, 1 - 20 / 40, 1 - 90 / 95])
+    # Of the group's points visible in its view (its own none), the share landing on it; of those on a mask.
+    reverse_cover = np.array([60 / 95, 10 / 95, 85 / 130])
+    np.testing.assert_allclose(column["reverse_cover"], reverse_cover)
+    np.testing.assert_allclose(column["reverse_share"], [60 / 90, 10 / 90, 85 / 105])
+    np.testing.assert_allclose(column["group_own_cover"], np.full(3, own_cover.mean()))
+    np.testing.assert_allclose(column["group_reverse_cover"], np.full(3, reverse_cover.mean()))
+
+
+def test_support_features_of_a_group_without_rivals_or_other_views():
+    x = support_features(_two_groups_and_a_stray(), ShadowCorrConfig())
+    column = {name: x[:, i] for i, name in enumerate(SUPPORT_FEATURES)}
+    np.testing.assert_array_equal(column["view_rivals"], [0, 0, 0, 0])
+    np.testing.assert_array_equal(column["view_share"], [1, 1, 1, 1])
+    # 0 and 1 land on each other (80 of 90 visible points); 2 and 3 are alone: nothing to cover, nothing off.
+    np.testing.assert_allclose(column["own_cover"], [80 / 90, 80 / 90, 1, 1])
+    np.testing.assert_allclose(column["off_mask"], [0, 0, 0, 0])
+    np.testing.assert_allclose(column["reverse_cover"], [80 / 90, 80 / 90, 1, 1])

@@ -88,6 +88,7 @@ _EXPORTS = {
     "EvidenceGroups": "_09_grouping",
     "SUPPORT_FEATURES": "_09_support",
     "SupportCalibration": "_09_support",
+    "SupportTrees": "_09_support",
     "segment_support": "_09_support",
     "support_calibration": "_09_support",
     "support_features": "_09_support",
@@ -134,7 +135,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
         EvidenceGroups, SegmentGraph, agglomerate, group_by_evidence, join_nearest_surface, link_components,
         merged_mask_segments, segment_confidence, split_mask_ids, without_landings_on,
     )
-    from ._09_support import SUPPORT_FEATURES, SupportCalibration, segment_support, support_calibration, support_features
+    from ._09_support import (SUPPORT_FEATURES, SupportCalibration, SupportTrees, segment_support, support_calibration,
+                              support_features)
     from ._10_assignment import (
         evidence_labels, number_objects, object_summaries, orphan_warnings, segment_labels, vote,
     )
