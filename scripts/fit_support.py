@@ -14,14 +14,15 @@ benchmark's ``wrong_segments``) are recorded.  The model is fitted on two thirds
 and checked on the rest (all of them, and the clean, single-error and combined-error runs
 apart): expected calibration error (10 bins), AUROC and the precision / recall of "support
 below the threshold" as a flag for wrong segments.  It is ``--trees`` boosted regression trees
-(scikit-learn's histogram gradient boosting, log loss, at most 7 leaves each: which evidence
-matters depends on the rest of it, e.g. a thin share of its view's points means little alone
-and much when another mask of that view sits in the group), shipped as plain node tables; with
-``--trees 0`` a logistic regression on the standardised features.  The threshold is the highest
-support at which the flag still has ``--precision`` on the fitted scenes' combined-error runs,
-read from out-of-fold supports (three folds of those scenes: trees fit their own scenes closer
-than new ones).  Per-run features are cached in ``--work`` with their
-names (saved every 50 runs), so an interrupted run resumes, a rerun only fits, and a fit on
+(scikit-learn's histogram gradient boosting, log loss, at most 7 leaves of at least 100
+segments each, no early stopping, so the fit does not depend on the order of the runs): which
+evidence matters depends on the rest of it, e.g. a thin share of its view's points means little
+alone and much when another mask of that view sits in the group.  They ship as plain node
+tables; with ``--trees 0`` the model is a logistic regression on the standardised features.
+The threshold is the highest support at which the flag still has ``--precision`` on the fitted
+scenes' combined-error runs, read from out-of-fold supports (three folds of those scenes: trees
+fit their own scenes closer than new ones).  Per-run features are cached in ``--work`` with
+their names (saved every 50 runs), so an interrupted run resumes, a rerun only fits, and a fit on
 fewer features reuses them; ``--runs-only`` fills the cache and fits nothing.
 """
 
@@ -146,7 +147,7 @@ def fit_calibration(x: np.ndarray, wrong: np.ndarray, trees: int, fitted_on: str
     f = len(SUPPORT_FEATURES)
     if trees:
         model = HistGradientBoostingClassifier(max_iter=trees, learning_rate=0.05, max_leaf_nodes=7,
-                                               min_samples_leaf=40, random_state=0).fit(x, ~wrong)
+                                               min_samples_leaf=100, early_stopping=False).fit(x, ~wrong)
         tables, baseline = tree_tables(model)
         return SupportCalibration(SUPPORT_FEATURES, np.zeros(f), np.ones(f), np.zeros(f), baseline, 0.5, fitted_on,
                                   tables)
@@ -160,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenes", type=int, default=12, help="generated scenes per rig under every condition")
     p.add_argument("--combined-scenes", type=int, default=24,
                    help="generated scenes per rig under the combined errors (the first --scenes of them included)")
-    p.add_argument("--trees", type=int, default=200, help="boosted trees (0: a logistic regression)")
+    p.add_argument("--trees", type=int, default=300, help="boosted trees (0: a logistic regression)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--runs-only", action="store_true", help="compute the runs' features, fit nothing")
     p.add_argument("--precision", type=float, default=0.55,

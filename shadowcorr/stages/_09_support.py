@@ -201,15 +201,28 @@ class SupportTrees:
         return {"feature": self.feature.tolist(), "threshold": self.threshold.tolist(), "left": self.left.tolist(),
                 "right": self.right.tolist(), "value": self.value.tolist(), "depth": self.depth}
 
+    def __post_init__(self) -> None:
+        # Flat tables for the walk: node i of tree t is t * N + i; a node's two children sit at
+        # 2 * node (right) and 2 * node + 1 (left), so a row's step is one lookup.
+        t, n = self.feature.shape
+        first = (np.arange(t) * n)[:, None]
+        object.__setattr__(self, "_root", first.ravel().astype(np.intp))
+        object.__setattr__(self, "_feature", self.feature.ravel().astype(np.intp))
+        object.__setattr__(self, "_threshold", self.threshold.ravel())
+        object.__setattr__(self, "_value", self.value.ravel())
+        object.__setattr__(self, "_child", np.stack([(self.right + first).ravel(), (self.left + first).ravel()],
+                                                     axis=1).ravel().astype(np.intp))
+
     def logit(self, features: np.ndarray) -> np.ndarray:
         """(S,) the trees' summed leaf values of each row: every tree walked at once, level by level."""
-        trees = np.arange(self.feature.shape[0])[None, :]
-        rows = np.arange(features.shape[0])[:, None]
-        node = np.zeros((features.shape[0], trees.size), dtype=np.int64)
+        rows, columns = features.shape
+        flat = np.ascontiguousarray(features, dtype=np.float64).ravel()
+        row_start = (np.arange(rows) * columns)[:, None]
+        node = np.broadcast_to(self._root, (rows, self._root.size))
         for _ in range(self.depth):
-            go_left = features[rows, self.feature[trees, node]] <= self.threshold[trees, node]
-            node = np.where(go_left, self.left[trees, node], self.right[trees, node])
-        return self.value[trees, node].sum(axis=1)
+            go_left = flat[row_start + self._feature[node]] <= self._threshold[node]
+            node = self._child[2 * node + go_left]
+        return self._value[node].sum(axis=1)
 
 
 @dataclass(frozen=True)
