@@ -105,13 +105,13 @@ def test_halves_of_a_split_mask_are_merged_when_a_later_scan_sees_the_whole(tmp_
     column = np.arange(mask.shape[1])[None, :]
     middle = int(np.median(cols))
     # One sphere, two ids, with a gap between them wider than a seam is looked for across.
+    config = ShadowCorrConfig()
     mask[(mask == 1) & (column >= middle)] = 7
-    mask[((mask == 1) | (mask == 7)) & (np.abs(column - middle) < 6)] = 0
+    mask[((mask == 1) | (mask == 7)) & (np.abs(column - middle) <= config.fusion_seam_gap // 2 + 1)] = 0
     # Seen by one view only, two mask ids are two objects (the per-view constraint); once other views
     # show the two masks landing together (a split mask), the constraint no longer holds - as in one
     # run of the four views.  (With a much stronger constraint, fusion_cannot_link=3, that one run
     # keeps them apart too.)
-    config = ShadowCorrConfig()
     split = dataclasses.replace(cam0, mask=mask)
     one_shot = {s.instance: s.object for s in correspond(dataclasses.replace(
         ring, views=[split, *views(ring, "cam2", "cam3", "cam4").views]), model, config).segments if s.view == "cam0"}

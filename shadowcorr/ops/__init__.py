@@ -16,7 +16,7 @@ the number of segments given explicitly (segments may be empty):
 
 from __future__ import annotations
 
-from ._depth_noise import relative_depth_noise
+from ._depth_noise import NOISE_ROW_STEP, relative_depth_noise
 from ._grid_keys import pack_cell_keys, unique_keys
 from ._segment_chunks import segment_chunks
 from ._segment_reduce import segment_max, segment_min, segment_range, segment_starts
@@ -24,6 +24,6 @@ from ._segment_separation import separated, separation_gap
 from ._thread_map import resolve_threads, thread_map
 
 __all__ = [
-    "pack_cell_keys", "relative_depth_noise", "segment_chunks", "segment_max", "segment_min", "segment_range", "segment_starts", "separated",
+    "NOISE_ROW_STEP", "pack_cell_keys", "relative_depth_noise", "segment_chunks", "segment_max", "segment_min", "segment_range", "segment_starts", "separated",
     "separation_gap", "resolve_threads", "thread_map", "unique_keys",
 ]

@@ -59,7 +59,7 @@ import numpy as np
 
 from ..bundle import SceneBundle
 from ..config import ShadowCorrConfig
-from ..ops import relative_depth_noise, thread_map
+from ..ops import NOISE_ROW_STEP, relative_depth_noise, thread_map
 from ._02_segments import SegmentImage, Segments
 
 #: Most pixels read on each side of a seam along a walk, to which lines are fitted.
@@ -151,9 +151,9 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
         # The median of n steps, each _step_noise(...) sigma of depth noise wide, is
         # uncertain by 1.25 times their RMS width / sqrt(n) (sigma = a z, relative): in noisy
         # depth a short seam between two rocks passes for smooth by chance, so a seam counts
-        # only where that uncertainty is within the tolerance.  Every fourth row is plenty for
-        # the view's noise figure.
-        noise = relative_depth_noise(z[::2])
+        # only where that uncertainty is within the tolerance.  The noise figure is the whole
+        # view's, read as the occupancy stage reads it.
+        noise = relative_depth_noise(np.asarray(depth)[::NOISE_ROW_STEP])
         rms_width = np.sqrt(np.add.reduceat(width**2, starts) / counts)
         uncertainty = 1.25 * rms_width * noise * median_depth / np.sqrt(counts)
         smooth &= config.fusion_seam_noise * uncertainty <= config.fusion_seam_tolerance

@@ -43,7 +43,7 @@ import numpy as np
 
 from ..bundle import View
 from ..config import ShadowCorrConfig
-from ..ops import pack_cell_keys, relative_depth_noise, unique_keys
+from ..ops import NOISE_ROW_STEP, pack_cell_keys, relative_depth_noise, unique_keys
 from ._05_shadows import ShadowVoxels
 
 
@@ -105,7 +105,7 @@ def shadow_occupancy(views: list[View], shadows: ShadowVoxels, unit_scale: float
     # Each view's depth noise (sigma = a z^2, measured on every 16th row: well within a percent of
     # the full image's figure); depth images whose noise stays below a tenth of a sample's spacing
     # everywhere are read as they are.
-    noise = np.array([relative_depth_noise(v.depth[::_NOISE_ROW_STEP]) for v in usable])
+    noise = np.array([relative_depth_noise(v.depth[::NOISE_ROW_STEP]) for v in usable])
     reach = config.max_depth / unit_scale
     smoothed = noise * reach * reach > _SMOOTH_ABOVE * scale / n_sub
     solid = np.zeros((cells.shape[0], samples), dtype=bool)
@@ -123,8 +123,6 @@ def shadow_occupancy(views: list[View], shadows: ShadowVoxels, unit_scale: float
                            solid[kept], offsets)
 
 
-#: Rows of a depth image read for its noise figure: every this many.
-_NOISE_ROW_STEP = 16
 #: A view's depth is smoothed where its noise at the largest depth exceeds this share of a sample's spacing.
 _SMOOTH_ABOVE = 0.1
 #: Smoothing averages the depth at the pixels this far apart around a sample's pixel (3 x 3 of them).
