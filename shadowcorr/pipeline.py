@@ -125,7 +125,8 @@ def prepare_segments(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         timings["shadows"] = _ms_since(t0)
         _check_stage_time(timings, config)
     t0 = time.perf_counter()  # 05 occupancy: what the depth images leave solid of the shadows
-    occupancy = shadow_occupancy(bundle.views, shadows, unit_scale(bundle.units, config.units), config)
+    occupancy = shadow_occupancy(bundle.views, shadows, unit_scale(bundle.units, config.units), config,
+                                 segments.depth_noise)
     timings["occupancy"] = _ms_since(t0)
     _check_stage_time(timings, config)
     scene = build_voxel_scene(  # 06

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from ..bundle import SceneBundle, View, unit_scale
 from ..config import ShadowCorrConfig
 from ..errors import DepthRangeError
-from ..ops import thread_map
+from ..ops import NOISE_ROW_STEP, relative_depth_noise, thread_map
 
 
 @dataclass
@@ -89,6 +89,9 @@ class Segments:
     # Per view: the segment index on each pixel, for the cross-view surface evidence.  None
     # for views without images (point flavour).
     pixel_segment: list[SegmentImage | None] | None = None
+    # (V,) each view's relative depth noise ``a`` (sigma = a z^2; 0 without depth), measured once
+    # on its image for the stages that weigh depth against it (seams, occupancy).  None: not measured.
+    depth_noise: np.ndarray | None = None
 
     @property
     def num_segments(self) -> int:
@@ -311,6 +314,8 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         view_names=[v.name for v in bundle.views],
         truth=np.concatenate(truth) if truth else None,
         pixel_segment=pixel_segment,
+        depth_noise=np.array([relative_depth_noise(v.depth[::NOISE_ROW_STEP]) if v.depth is not None else 0.0
+                              for v in bundle.views]),
     )
 
 

@@ -99,14 +99,15 @@ def smooth_seams(bundle: SceneBundle, segments: Segments, config: ShadowCorrConf
         image, depth = segments.pixel_segment[j], bundle.views[j].depth
         if image is None or depth is None:
             return Seams.empty()
-        return _view_seams(image, depth, config)
+        return _view_seams(image, depth, config, None if segments.depth_noise is None else segments.depth_noise[j])
 
     found = thread_map(view_seams, range(len(bundle.views)), config.num_threads)
     return Seams(*(np.concatenate([getattr(f, name) for f in found]) for name in
                    ("first", "second", "samples", "step", "uncertainty")))
 
 
-def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig) -> Seams:
+def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig, noise: float | None = None) -> Seams:
+    """One view's smooth seams; ``noise`` is the view's relative depth noise (measured here when None)."""
     labels = np.asarray(image.window)
     if labels.size == 0:
         return Seams.empty()
@@ -152,8 +153,9 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
         # uncertain by 1.25 times their RMS width / sqrt(n) (sigma = a z, relative): in noisy
         # depth a short seam between two rocks passes for smooth by chance, so a seam counts
         # only where that uncertainty is within the tolerance.  The noise figure is the whole
-        # view's, read as the occupancy stage reads it.
-        noise = relative_depth_noise(np.asarray(depth)[::NOISE_ROW_STEP])
+        # view's (Segments.depth_noise), read as the occupancy stage reads it.
+        if noise is None:
+            noise = relative_depth_noise(np.asarray(depth)[::NOISE_ROW_STEP])
         rms_width = np.sqrt(np.add.reduceat(width**2, starts) / counts)
         uncertainty = 1.25 * rms_width * noise * median_depth / np.sqrt(counts)
         smooth &= config.fusion_seam_noise * uncertainty <= config.fusion_seam_tolerance

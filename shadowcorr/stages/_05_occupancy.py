@@ -77,15 +77,17 @@ _CHUNK_SAMPLES = 1 << 20
 
 
 def shadow_occupancy(views: list[View], shadows: ShadowVoxels, unit_scale: float,
-                     config: ShadowCorrConfig) -> ShadowOccupancy:
+                     config: ShadowCorrConfig, depth_noise: np.ndarray | None = None) -> ShadowOccupancy:
     """Solid share of every shadow cell, from the views' depth images and masks.
 
     ``unit_scale`` converts the views' (bundle) units to the configuration's.  Views
     without depth or mask (point-segment bundles) rule nothing out; a bundle with none
-    returns an empty occupancy (no volume can be measured).
+    returns an empty occupancy (no volume can be measured).  ``depth_noise`` is each view's
+    relative depth noise as stage 02 measured it (``Segments.depth_noise``; measured here when None).
     """
     n_sub = config.volume_subdivisions
-    usable = [v for v in views if v.depth is not None and v.mask is not None and v.intrinsics is not None]
+    kept = [k for k, v in enumerate(views) if v.depth is not None and v.mask is not None and v.intrinsics is not None]
+    usable = [views[k] for k in kept]
     if shadows.segment.size == 0 or not usable:
         return ShadowOccupancy.empty(n_sub ** 3)
     key, unpack = pack_cell_keys(np.zeros_like(shadows.segment), shadows.cell)
@@ -105,7 +107,8 @@ def shadow_occupancy(views: list[View], shadows: ShadowVoxels, unit_scale: float
     # Each view's depth noise (sigma = a z^2, measured on every 16th row: well within a percent of
     # the full image's figure); depth images whose noise stays below a tenth of a sample's spacing
     # everywhere are read as they are.
-    noise = np.array([relative_depth_noise(v.depth[::NOISE_ROW_STEP]) for v in usable])
+    noise = (np.asarray(depth_noise, dtype=np.float64)[kept] if depth_noise is not None
+             else np.array([relative_depth_noise(v.depth[::NOISE_ROW_STEP]) for v in usable]))
     reach = config.max_depth / unit_scale
     smoothed = noise * reach * reach > _SMOOTH_ABOVE * scale / n_sub
     solid = np.zeros((cells.shape[0], samples), dtype=bool)
