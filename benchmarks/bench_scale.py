@@ -23,7 +23,9 @@ wall time per stage (``result.timings_ms``), the CPU time of the whole call (les
 sensitive than wall time to other work on a shared machine), peak resident memory of the process (and
 of the decoded input alone), and the average purity next to the single scene's.  At the
 end: the growth exponent (least-squares slope of log total time against log rocks, wall and CPU) and a
-log-log plot ``scale.png`` under ``--out``.
+log-log plot ``scale.png`` under ``--out``.  ``--docs`` also writes the rows as a Markdown table
+(default ``docs/benchmarks/tables/scale-sample.md`` or ``scale-synthetic.md``), which the
+documentation's scaling page includes, so that no figure is typed by hand.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import platform
 import resource
 import subprocess
 import sys
@@ -40,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "ue_sample"  # ships with the repository
+DOCS_TABLE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "tables" / "scale.md"
 
 
 def tile_scene(bases: list, spacing: float):
@@ -202,6 +207,8 @@ def main() -> int:
     parser.add_argument("--data", default=str(SAMPLE))
     parser.add_argument("--out", default="out")
     parser.add_argument("--embedding", action="store_true", help="only compare the segment-id embedding scopes")
+    parser.add_argument("--docs", nargs="?", const=str(DOCS_TABLE), default=None, metavar="PATH",
+                        help="also write the rows as a Markdown table (default docs/benchmarks/tables/scale-<source>.md)")
     parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)  # child process mode
     args = parser.parse_args()
     cameras = [int(c) for c in args.cameras.split(",")]
@@ -213,6 +220,7 @@ def main() -> int:
                                  Path(args.cache), args.tile_rocks)))
         return 0
 
+    load = os.getloadavg()[0]
     rows = []
     for copies in [int(c) for c in args.copies.split(",")]:
         cmd = [sys.executable, __file__, "--one", str(copies), "--cameras", args.cameras, "--spacing",
@@ -239,7 +247,37 @@ def main() -> int:
         cpu_slope = np.polyfit(x, np.log([r["cpu_s"] for r in rows]), 1)[0]
         print(f"growth exponent (log total time vs log rocks): wall {slope:.3f}, CPU {cpu_slope:.3f}")
         _plot(rows, slope, intercept, Path(args.out) / "scale.png")
+    if args.docs:
+        path = Path(args.docs if args.docs != str(DOCS_TABLE) else DOCS_TABLE.with_name(f"scale-{args.source}.md"))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(docs_table(args, rows, load))
+        print(f"wrote {path}")
     return 0
+
+
+def docs_table(args: argparse.Namespace, rows: list[dict], load: float) -> str:
+    """The run's rows as Markdown, with the release, the machine, its load and the command."""
+    import torch
+
+    from shadowcorr import __version__
+
+    command = " ".join(["python benchmarks/bench_scale.py", "--copies", args.copies, "--threads", str(args.threads)]
+                       + ([] if args.source == "sample" else ["--source", args.source])
+                       + ([] if args.tile_rocks is None else ["--tile-rocks", str(args.tile_rocks)]) + ["--docs"])
+    lines = [f"ShadowCorr {__version__}; {platform.machine()} with {os.cpu_count()} cores, torch {torch.__version__}; "
+             f"load average {load:.1f} before the run; one run: `{command}`.", "",
+             "| tiles | rocks | views | segments | wall | CPU | peak RSS (of it, decoded input) | average purity |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        alone = f" (alone: {r['tiles_alone_purity']:.3f})" if r["tiles_alone_purity"] is not None else ""
+        lines.append(f"| {r['copies']} | {r['rocks']:,} | {r['views']} | {r['segments']:,} | {r['wall_s']:.2f} s | "
+                     f"{r['cpu_s']:.2f} s | {r['peak_rss_mb'] / 1024:.2f} GB ({r['input_mb'] / 1024:.1f} GB) | "
+                     f"{r['average_purity']:.3f}{alone} |")
+    if len(rows) >= 2:
+        x = np.log([r["rocks"] for r in rows])
+        lines += ["", f"Growth exponent of the wall time against the rocks: "
+                      f"{np.polyfit(x, np.log([r['wall_s'] for r in rows]), 1)[0]:.2f}."]
+    return "\n".join(lines) + "\n"
 
 
 def _plot(rows: list[dict], slope: float, intercept: float, path: Path) -> None:
