@@ -16,6 +16,7 @@ import asyncio
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -277,8 +278,17 @@ def test_interrupted_upload_resumes_without_resending_finished_scenes(server, da
     assert len(lines(out)) == SYNTH_SCENES
 
     # 2. A real interruption: Ctrl-C once the first scene is written; the rerun sends only what is missing.
+    # Eight copies of each scene, so that the upload (about 0.1 s a scene) is still running when the
+    # signal comes, however fast the machine.
+    many = tmp_path / "many"
+    many.mkdir()
+    for copy in range(8):
+        for scene in synth.iterdir():
+            target = many / f"c{copy}_{scene.name}"
+            (shutil.copytree if scene.is_dir() else shutil.copy)(scene, target)
+    total = len(list(many.iterdir()))
     out2 = tmp_path / "interrupted.jsonl"
-    proc = cli_subprocess(server, "upload-dataset", str(synth), "--out", str(out2), "--concurrency", "1", out=out2)
+    proc = cli_subprocess(server, "upload-dataset", str(many), "--out", str(out2), "--concurrency", "1", out=out2)
     try:
         wait_for_lines(out2, 1, proc)
         proc.send_signal(signal.SIGINT)
@@ -287,12 +297,12 @@ def test_interrupted_upload_resumes_without_resending_finished_scenes(server, da
         if proc.poll() is None:
             proc.kill()
     done, _ = read_records(out2)
-    assert 1 <= len(done) < SYNTH_SCENES, "the upload finished before it could be interrupted"
+    assert 1 <= len(done) < total, "the upload finished before it could be interrupted"
     assert proc.returncode == 130 and "resume" in stderr
     before = server.requests().get("200", 0)
-    assert cli(server, "upload-dataset", str(synth), "--out", str(out2), "--no-progress") == 0
-    assert server.requests().get("200", 0) - before == SYNTH_SCENES - len(done)
-    assert len(read_records(out2)[0]) == SYNTH_SCENES
+    assert cli(server, "upload-dataset", str(many), "--out", str(out2), "--no-progress") == 0
+    assert server.requests().get("200", 0) - before == total - len(done)
+    assert len(read_records(out2)[0]) == total
 
 
 # --------------------------------------------------------------------------- retries
