@@ -278,14 +278,12 @@ def test_interrupted_upload_resumes_without_resending_finished_scenes(server, da
     assert len(lines(out)) == SYNTH_SCENES
 
     # 2. A real interruption: Ctrl-C once the first scene is written; the rerun sends only what is missing.
-    # Eight copies of each scene, so that the upload (about 0.1 s a scene) is still running when the
-    # signal comes, however fast the machine.
+    # Twelve copies of the real scene (about 0.2 s each to label, where a small synthetic scene takes
+    # a few milliseconds), so that the upload is still running when the signal comes.
     many = tmp_path / "many"
     many.mkdir()
-    for copy in range(8):
-        for scene in synth.iterdir():
-            target = many / f"c{copy}_{scene.name}"
-            (shutil.copytree if scene.is_dir() else shutil.copy)(scene, target)
+    for copy in range(12):
+        shutil.copytree(dataset / "real" / "converted", many / f"real{copy}")
     total = len(list(many.iterdir()))
     out2 = tmp_path / "interrupted.jsonl"
     proc = cli_subprocess(server, "upload-dataset", str(many), "--out", str(out2), "--concurrency", "1", out=out2)
