@@ -133,8 +133,12 @@ def cli_subprocess(server: ServerProcess, *args: str, out: Path) -> subprocess.P
     env["SHADOWCORR_SERVER"] = server.url  # the environment variables work as well as the flags
     if server.token:
         env["SHADOWCORR_TOKEN"] = server.token
+    # A test run started in the background of a non-interactive shell (`cmd &`, as a CI script may do)
+    # ignores SIGINT, and a child inherits that: Python then installs no KeyboardInterrupt handler and
+    # a Ctrl-C would do nothing.  The child gets the default disposition a terminal gives a user.
     return subprocess.Popen([sys.executable, "-m", "shadowcorr_client", *args], cwd=REPO, env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def wait_for_lines(path: Path, n: int, proc: subprocess.Popen | None = None, timeout: float = 90.0) -> None:
@@ -278,8 +282,8 @@ def test_interrupted_upload_resumes_without_resending_finished_scenes(server, da
     assert len(lines(out)) == SYNTH_SCENES
 
     # 2. A real interruption: Ctrl-C once the first scene is written; the rerun sends only what is missing.
-    # Twelve copies of the real scene (about 0.2 s each to label, where a small synthetic scene takes
-    # a few milliseconds), so that the upload is still running when the signal comes.
+    # Twelve copies of the real scene (about 0.2 s each to label), so that the upload is still running
+    # when the signal comes.
     many = tmp_path / "many"
     many.mkdir()
     for copy in range(12):
