@@ -16,10 +16,11 @@ from .harness import SLOW_SCENE_VIEWS, ServerProcess, slow_sample_parts, zipped_
 from .paths import SAMPLE_DIR
 
 TOKEN = "s3cret-token-for-tests"
-TIMEOUT_S = 1.0
-#: A timed-out job's worker is killed this long after the timeout (short: the slow scene below
-#: must outlast timeout + grace on a fast machine too).
-CANCEL_GRACE_S = 0.2
+#: The slow scene (harness.slow_sample_parts) takes about 1 s on a fast 2-core machine: the timeout
+#: plus the grace must stay well under that, or the job ends before its worker is killed.
+TIMEOUT_S = 0.5
+#: A timed-out job's worker is killed this long after the timeout.
+CANCEL_GRACE_S = 0.1
 
 
 @pytest.fixture(scope="module")
