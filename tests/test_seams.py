@@ -148,3 +148,29 @@ def test_touching_spheres_have_no_seam_and_a_split_sphere_has_one():
     pair = {int(segments.instance[seams.first[0]]), int(segments.instance[seams.second[0]])}
     assert pair == {int(ids[0]), 99} and segments.view[seams.first[0]] == 0
     assert smooth_seams(split, segments, config.with_options(fusion_seam_gap=0)).first.size == 0
+
+
+@pytest.mark.parametrize("dy, dx", [(0, 1), (1, 0)])
+def test_neighbours_match_a_pixel_by_pixel_scan(dy, dx):
+    """The run-based neighbour search finds exactly the pairs a plain scan along every line finds:
+    a segment's last pixel, at most ``gap`` unlabelled pixels, then a different segment."""
+    from shadowcorr.stages._03_seams import _neighbours
+
+    rng = np.random.default_rng(3)
+    labels = rng.integers(-1, 4, size=(23, 31))
+    labels[rng.random(labels.shape) < 0.55] = -1  # long unlabelled runs between the segments
+    gap = 4
+    expected = set()
+    lines = labels if dx else labels.T
+    for line_index, line in enumerate(lines):
+        for i, first in enumerate(line):
+            if first < 0:
+                continue
+            j = i + 1
+            while j < line.size and line[j] < 0 and j - i - 1 < gap:
+                j += 1
+            if j < line.size and line[j] >= 0 and line[j] != first:
+                row, col = (line_index, i) if dx else (i, line_index)
+                expected.add((row, col, int(first), int(line[j]), j - i))
+    found = set(zip(*(x.tolist() for x in _neighbours(labels.astype(np.int16), dy, dx, gap))))
+    assert found == expected and len(expected) > 20

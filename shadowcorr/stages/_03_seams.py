@@ -47,8 +47,9 @@ What the step cannot tell apart: two rocks that touch along a contour with conti
 blobs of one mask), and the surface and volumetric evidence still decide whether the two
 join.  Mask ids are only compared within their own view; nothing here reads ground truth.
 
-Cost: the walks start from border pixels only (a few per cent of the mask) and take
-``2 * (fusion_seam_gap + 1)`` vectorised steps per view, fewer walkers each step.
+Cost: one comparison of each view's window with itself shifted by a pixel per direction;
+everything else runs on the border pixels (a few per cent of the mask), and the sides are
+read only for pairs with enough samples to make a seam.
 """
 
 from __future__ import annotations
@@ -112,34 +113,39 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     if labels.size == 0:
         return Seams.empty()
     h, w = labels.shape
-    d = image.view_stride
-    if d > 1:  # depth coarser than the labels (a site map's stored view): each pixel reads the depth pixel it lies in
-        rows = np.minimum((image.top + np.arange(h)) // d, depth.shape[0] - 1)
-        cols = np.minimum((image.left + np.arange(w)) // d, depth.shape[1] - 1)
-        z = np.asarray(depth)[np.ix_(rows, cols)]
+    stride = image.view_stride
+    if stride > 1:  # depth coarser than the labels (a site map's stored view): each pixel reads the depth pixel it lies in
+        depth_rows = np.minimum((image.top + np.arange(h)) // stride, depth.shape[0] - 1)
+        depth_cols = np.minimum((image.left + np.arange(w)) // stride, depth.shape[1] - 1)
+        z = np.asarray(depth)[np.ix_(depth_rows, depth_cols)]
     else:
         z = depth[image.top:image.top + h, image.left:image.left + w]  # a view: read only where sampled
-    parts: list[list[np.ndarray]] = [[], [], [], [], []]
-    for dy, dx in DIRECTIONS:
-        found = _walk(labels, z, dy, dx, config.fusion_seam_gap)
-        if found is not None:
-            for part, value in zip(parts, found):
-                part.append(value)
-    if not parts[0]:
+    found = [_neighbours(labels, dy, dx, config.fusion_seam_gap) for dy, dx in DIRECTIONS]
+    rows, cols, a, b, d = (np.concatenate([f[i] for f in found]) for i in range(5))
+    dy, dx = (np.repeat([direction[i] for direction in DIRECTIONS], [f[0].size for f in found]) for i in (0, 1))
+    # A pair with fewer samples than a seam needs is dropped before its sides are read (reading
+    # only ever removes samples): most border pairs are corners where three masks meet.
+    span = int(labels.max()) + 1
+    key = np.minimum(a, b) * span + np.maximum(a, b)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    enough = np.flatnonzero(counts[inverse] >= config.fusion_seam_min_pixels)
+    if enough.size == 0:
         return Seams.empty()
-    a, b, step, zp, width = (np.concatenate(p) for p in parts)
+    a, b, step, zp, width = _steps(labels, z, *(x[enough] for x in (rows, cols, a, b, d, dy, dx)))
+    if a.size == 0:
+        return Seams.empty()
     # One orientation per pair: the step is measured from the smaller index to the larger.
     flip = a > b
     a, b = np.where(flip, b, a), np.where(flip, a, b)
     step = np.where(flip, -step, step)
-    span = int(labels.max()) + 1
     key = a * span + b
     by_step, by_depth = np.lexsort((step, key)), np.lexsort((zp, key))  # the same runs, sorted two ways
     key, step, zp, width = key[by_step], step[by_step], zp[by_depth], width[by_step]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
     counts = np.diff(np.r_[starts, key.size])
+    square_width = np.add.reduceat(width**2, starts)  # per run, before runs are dropped (reduceat sums up to the next start)
     keep = counts >= config.fusion_seam_min_pixels
-    starts, counts = starts[keep], counts[keep]
+    starts, counts, square_width = starts[keep], counts[keep], square_width[keep]
     if starts.size == 0:
         return Seams.empty()
     # Median of each run: the steps are sorted within their key.
@@ -156,64 +162,62 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
         # view's (Segments.depth_noise), read as the occupancy stage reads it.
         if noise is None:
             noise = relative_depth_noise(np.asarray(depth)[::NOISE_ROW_STEP])
-        rms_width = np.sqrt(np.add.reduceat(width**2, starts) / counts)
+        rms_width = np.sqrt(square_width / counts)
         uncertainty = 1.25 * rms_width * noise * median_depth / np.sqrt(counts)
         smooth &= config.fusion_seam_noise * uncertainty <= config.fusion_seam_tolerance
     k = key[starts][smooth]
     return Seams(k // span, k % span, counts[smooth].astype(np.int64), median_step[smooth], uncertainty[smooth])
 
 
-def _walk(labels: np.ndarray, z: np.ndarray, dy: int, dx: int, gap: int
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """Seam samples found walking from border pixels along ``(dy, dx)``: (first segment, second
-    segment, relative depth step, first side's mean depth, the step's noise in sigmas)."""
-    h, w = labels.shape
-    # Border pixels: labelled, and the next pixel along the direction is not the same segment
-    # (compared on two shifted views of the image: no index arrays for the whole window).
-    # DIRECTIONS step down (dy >= 0) and either way along the row.
-    here = labels[:h - dy, max(0, -dx):w - max(0, dx)]
-    ahead = labels[dy:, max(0, dx):w - max(0, -dx)]
-    border = (here >= 0) & (here != ahead)
-    rows, cols = np.divmod(np.flatnonzero(border), border.shape[1])  # ten times faster than a 2D np.nonzero
-    cols = cols + max(0, -dx)
+def _neighbours(labels: np.ndarray, dy: int, dx: int, gap: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs of different segments that follow each other along the rows (``dx`` = 1) or the
+    columns (``dy`` = 1) across at most ``gap`` unlabelled pixels: (row, column) of the first
+    segment's last pixel, the first and the second segment, and the second's distance ``d``.
+
+    Read from the runs of constant value along each line: the value changes only on border
+    pixels, so after one comparison of the image with itself shifted by a pixel everything
+    runs on the (few) changes.  A segment's run followed directly by another segment's is a
+    pair at ``d`` = 1; one followed by an unlabelled run of ``g`` <= ``gap`` pixels and then
+    another segment's run, a pair at ``d`` = ``g + 1``.  The same segment on both sides of a
+    gap is a concave border, no pair.
+    """
+    change = labels[:labels.shape[0] - dy, :labels.shape[1] - dx] != labels[dy:, dx:]
+    rows, cols = np.divmod(np.flatnonzero(change), change.shape[1])  # ten times faster than a 2D np.nonzero
+    if dy:  # runs along the columns: the changes in column order (row-major order within each)
+        order = np.argsort(cols, kind="stable")
+        rows, cols = rows[order], cols[order]
+    line, position = (rows, cols) if dx else (cols, rows)
+    before = labels[rows, cols].astype(np.int64)
+    after = labels[rows + dy, cols + dx].astype(np.int64)
+    direct = np.flatnonzero((before >= 0) & (after >= 0))
+    # An unlabelled run starts after change i and ends at change i + 1 on the same line.
+    g = position[1:] - position[:-1]
+    across = np.flatnonzero((before[:-1] >= 0) & (after[:-1] < 0) & (line[1:] == line[:-1]) & (g <= gap)
+                            & (after[1:] >= 0) & (after[1:] != before[:-1]))
+    first = np.concatenate([direct, across])
+    return (rows[first], cols[first], before[first], np.concatenate([after[direct], after[across + 1]]),
+            np.concatenate([np.ones(direct.size, np.int64), g[across] + 1]))
+
+
+def _steps(labels: np.ndarray, z: np.ndarray, rows: np.ndarray, cols: np.ndarray, a: np.ndarray, b: np.ndarray,
+           d: np.ndarray, dy: np.ndarray, dx: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The relative depth step of each pair of :func:`_neighbours` (``dy``, ``dx``: its direction)
+    where both sides give a reading: (first segment, second segment, step, first side's mean
+    depth, the step's noise in sigmas)."""
     flat_labels = np.ascontiguousarray(labels).reshape(-1)
-    start = rows * w + cols
-    own = flat_labels.take(start).astype(np.int64)
-    # Steps each border pixel can take before it leaves the window along the direction.
-    room = np.full(rows.size, gap + 1, dtype=np.int64)
-    for offset, position, size in ((dy, rows, h), (dx, cols, w)):
-        if offset:
-            room = np.minimum(room, (size - 1 - position) if offset > 0 else position)
-    # Walk all border pixels in step (on flat pixel indices); the ones that reach a segment (or the
-    # window's edge) drop out.
-    walkers = np.arange(rows.size)
-    found_at, found_other, found_d = [], [], []
-    for d in range(1, gap + 2):  # up to `gap` unlabelled pixels, then the other segment
-        walkers = walkers[room.take(walkers) >= d]
-        value = flat_labels.take(start.take(walkers) + d * (dy * w + dx))
-        reached = value >= 0
-        other = reached & (value != own.take(walkers))  # the own segment again: a concave border, no seam
-        found_at.append(walkers[other])
-        found_other.append(value[other])
-        found_d.append(np.full(int(other.sum()), d))
-        walkers = walkers[~reached]
-        if walkers.size == 0:
-            break
-    hit = np.concatenate(found_at)
-    if hit.size == 0:
-        return None
-    rows, cols, a = rows[hit], cols[hit], own[hit]
-    b, d = np.concatenate(found_other).astype(np.int64), np.concatenate(found_d)
     # Each side's depth is read on up to SIDE_PIXELS pixels along the walk, from INSET pixels
     # inside it (a depth sensor mixes the two surfaces on the contour pixel itself), as far as
     # the side's segment and valid depth reach without a break (at least MIN_SIDE_PIXELS), and
     # a line with one slope for both sides is fitted: the step is what that slope does not
     # explain between the sides' centroids (see _step_noise for why a fit, not single pixels).
     # Positions along the walk: this segment's border pixel is 0, the other's first pixel d.
-    k = np.arange(SIDE_PIXELS)
-    side_a = _side_reading(flat_labels, z, a, rows[:, None] - (INSET + k) * dy, cols[:, None] - (INSET + k) * dx)
-    side_b = _side_reading(flat_labels, z, b, (rows + d * dy)[:, None] + (INSET + k) * dy,
-                           (cols + d * dx)[:, None] + (INSET + k) * dx)
+    k = INSET + np.arange(SIDE_PIXELS)
+    dy, dx = dy[:, None], dx[:, None]
+    side_a = _side_reading(flat_labels, z, a, rows[:, None] - k * dy, cols[:, None] - k * dx)
+    side_b = _side_reading(flat_labels, z, b, (rows + d * dy.ravel())[:, None] + k * dy,
+                           (cols + d * dx.ravel())[:, None] + k * dx)
     good = np.flatnonzero((side_a[0] >= MIN_SIDE_PIXELS) & (side_b[0] >= MIN_SIDE_PIXELS))
     (n_a, k_a, z_a, kk_a, kz_a), (n_b, k_b, z_b, kk_b, kz_b) = ((x[good] for x in side) for side in (side_a, side_b))
     a, b, d = a[good], b[good], d[good]
