@@ -179,6 +179,9 @@ class ShadowCorrConfig(BaseModel):
                                      "under the view's estimated depth noise, are within the same tolerance (0: "
                                      "no such check)")
     fusion_seam_min_pixels: int = Field(30, ge=1, description="pixel pairs sampled along a seam before it is read")
+    fusion_seam_unsure: float = Field(1.0, ge=0, description="a seam that is not smooth but whose median step lies within "
+                                      "this many standard errors of fusion_seam_tolerance decides nothing: its view "
+                                      "neither joins nor parts the pair (0: such pairs are two masks)")
     fusion_merge_share: float = Field(0.25, ge=0, le=0.5, description="a segment whose landings in another view "
                                       "split, at least this share on each, over two segments that both land mostly "
                                       "on it and that a third view sees apart, is read as a merged mask: landings on "

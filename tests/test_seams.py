@@ -174,3 +174,23 @@ def test_neighbours_match_a_pixel_by_pixel_scan(dy, dx):
                 expected.add((row, col, int(first), int(line[j]), j - i))
     found = set(zip(*(x.tolist() for x in _neighbours(labels.astype(np.int16), dy, dx, gap))))
     assert found == expected and len(expected) > 20
+
+
+def test_a_seam_too_short_to_decide_is_unsure_and_an_occlusion_is_not():
+    """A small piece cut off a smooth surface meets the rest along 12 rows: too few samples for a
+    seam, but its step is no occlusion's, so with ``fusion_seam_unsure`` the pair is unsure; a
+    step of 8 % across the same short border is an occlusion contour."""
+    labels = _two_halves(3)
+    rows = np.arange(H)[:, None]
+    labels[((rows < 54) | (rows >= 66)) & (labels == 1)] = -1  # the piece keeps 12 rows
+    assert ((labels == 1).any(axis=1)).sum() == 12
+    config = ShadowCorrConfig()
+    seams = _view_seams(_image(labels), _tilted_plane(), config)
+    assert seams.first.size == 0
+    assert seams.unsure_first.tolist() == [0] and seams.unsure_second.tolist() == [1]
+    off = config.with_options(fusion_seam_unsure=0)
+    assert _view_seams(_image(labels), _tilted_plane(), off).unsure_first.size == 0  # off: two masks
+    depth = _tilted_plane()
+    depth[labels == 1] *= 1.08
+    occluded = _view_seams(_image(labels), depth, config)
+    assert occluded.first.size == 0 and occluded.unsure_first.size == 0

@@ -41,6 +41,14 @@ under ``harsh`` from 94.25 to 94.40, and lose 0.07 in one row (``syn:4v+split20%
 shorter minimum or a lower noise factor let two touching rocks pass for one surface (once in
 clean depth, once under 2 % noise).
 
+A seam too short or too noisy to pass for smooth is not an occlusion contour either when its
+median step lies within ``fusion_seam_unsure`` standard errors of the tolerance (and it has
+at least :data:`UNSURE_MIN_PIXELS` samples): such a pair is *unsure*, and its view then
+neither joins nor parts it (the grouping's loose mask ids, ``split_mask_ids``).  That is the
+small piece a split leaves of a small rock: its seam with the rest has a dozen samples, too
+few for the test above in clean depth and, under noise, for any test; read as two masks, the
+cannot-link of its view kept it alone although the other views saw it with the rest.
+
 What the step cannot tell apart: two rocks that touch along a contour with continuous depth
 (side by side at one distance, the contact facing the camera).  Such a pair is a
 *candidate* only: the grouping reads it as one mask id for its per-view constraints (as the
@@ -54,7 +62,7 @@ read only for pairs with enough samples to make a seam.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -67,6 +75,8 @@ from ._02_segments import SegmentImage, Segments
 SIDE_PIXELS = 10
 #: Fewest: a side narrower than that along the walk gives no step.
 MIN_SIDE_PIXELS = 3
+#: Fewest pixel pairs along a seam for it to be read as unsure (``fusion_seam_unsure``).
+UNSURE_MIN_PIXELS = 4
 #: Pixels inside each side where its reading starts (not the contour pixel itself).
 INSET = 1
 #: Walk directions (row step, column step): along the rows and the columns (a straight cut at
@@ -84,6 +94,10 @@ class Seams:
     samples: np.ndarray  # (K,) int64 pixel pairs sampled along the seam
     step: np.ndarray  # (K,) float64 median relative depth step across the seam (signed)
     uncertainty: np.ndarray  # (K,) float64 its standard error under the view's estimated depth noise
+    # Pairs whose seam decides nothing (``first < second``): too short or too noisy to pass
+    # for smooth, yet its step is not an occlusion's either (see ``fusion_seam_unsure``).
+    unsure_first: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    unsure_second: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @classmethod
     def empty(cls) -> "Seams":
@@ -104,7 +118,7 @@ def smooth_seams(bundle: SceneBundle, segments: Segments, config: ShadowCorrConf
 
     found = thread_map(view_seams, range(len(bundle.views)), config.num_threads)
     return Seams(*(np.concatenate([getattr(f, name) for f in found]) for name in
-                   ("first", "second", "samples", "step", "uncertainty")))
+                   ("first", "second", "samples", "step", "uncertainty", "unsure_first", "unsure_second")))
 
 
 def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig, noise: float | None = None) -> Seams:
@@ -128,7 +142,9 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     span = int(labels.max()) + 1
     key = np.minimum(a, b) * span + np.maximum(a, b)
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    enough = np.flatnonzero(counts[inverse] >= config.fusion_seam_min_pixels)
+    fewest = min(config.fusion_seam_min_pixels, UNSURE_MIN_PIXELS) if config.fusion_seam_unsure > 0 else \
+        config.fusion_seam_min_pixels
+    enough = np.flatnonzero(counts[inverse] >= fewest)
     if enough.size == 0:
         return Seams.empty()
     a, b, step, zp, width = _steps(labels, z, *(x[enough] for x in (rows, cols, a, b, d, dy, dx)))
@@ -144,7 +160,7 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
     counts = np.diff(np.r_[starts, key.size])
     square_width = np.add.reduceat(width**2, starts)  # per run, before runs are dropped (reduceat sums up to the next start)
-    keep = counts >= config.fusion_seam_min_pixels
+    keep = counts >= fewest
     starts, counts, square_width = starts[keep], counts[keep], square_width[keep]
     if starts.size == 0:
         return Seams.empty()
@@ -152,21 +168,28 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     lower, upper = starts + (counts - 1) // 2, starts + counts // 2
     median_step = 0.5 * (step[lower] + step[upper])
     median_depth = 0.5 * (zp[lower] + zp[upper])
-    smooth = np.abs(median_step) <= config.fusion_seam_tolerance
-    uncertainty = np.zeros(starts.size)
-    if config.fusion_seam_noise > 0 and smooth.any():
-        # The median of n steps, each _step_noise(...) sigma of depth noise wide, is
-        # uncertain by 1.25 times their RMS width / sqrt(n) (sigma = a z, relative): in noisy
-        # depth a short seam between two rocks passes for smooth by chance, so a seam counts
-        # only where that uncertainty is within the tolerance.  The noise figure is the whole
-        # view's (Segments.depth_noise), read as the occupancy stage reads it.
-        if noise is None:
-            noise = relative_depth_noise(np.asarray(depth)[::NOISE_ROW_STEP])
-        rms_width = np.sqrt(square_width / counts)
-        uncertainty = 1.25 * rms_width * noise * median_depth / np.sqrt(counts)
+    # The median of n steps, each _step_noise(...) sigma of depth noise wide, is uncertain by
+    # 1.25 times their RMS width / sqrt(n) (sigma = a z, relative): in noisy depth a short seam
+    # between two rocks passes for smooth by chance, so a seam counts only where that
+    # uncertainty is within the tolerance.  The noise figure is the whole view's
+    # (Segments.depth_noise), read as the occupancy stage reads it.
+    if noise is None:
+        noise = relative_depth_noise(np.asarray(depth)[::NOISE_ROW_STEP])
+    uncertainty = 1.25 * np.sqrt(square_width / counts) * noise * median_depth / np.sqrt(counts)
+    smooth = (counts >= config.fusion_seam_min_pixels) & (np.abs(median_step) <= config.fusion_seam_tolerance)
+    if config.fusion_seam_noise > 0:
         smooth &= config.fusion_seam_noise * uncertainty <= config.fusion_seam_tolerance
-    k = key[starts][smooth]
-    return Seams(k // span, k % span, counts[smooth].astype(np.int64), median_step[smooth], uncertainty[smooth])
+    # Unsure: a seam that is not smooth, but whose step lies within fusion_seam_unsure standard
+    # errors of the tolerance - the small piece a split leaves of a small rock has a seam of
+    # a dozen samples, which in clean depth is short of the minimum and under noise cannot
+    # tell a cut from a contour.  Such a pair's view says nothing about it (neither one mask
+    # nor two), instead of keeping the piece apart from the rest of its rock.
+    unsure = ~smooth & (np.abs(median_step) <= config.fusion_seam_tolerance + config.fusion_seam_unsure * uncertainty)
+    if config.fusion_seam_unsure == 0:
+        unsure[:] = False
+    k, u = key[starts][smooth], key[starts][unsure]
+    return Seams(k // span, k % span, counts[smooth].astype(np.int64), median_step[smooth], uncertainty[smooth],
+                 u // span, u % span)
 
 
 def _neighbours(labels: np.ndarray, dy: int, dx: int, gap: int

@@ -31,7 +31,9 @@ Two ways to resolve the evidence, one per method:
     other blobs of its mask.  The mask ids the constraints read come from
     :func:`split_mask_ids`: two masks of one view whose segments land together on one
     segment in several other views, or that meet on one smooth surface in their own view
-    (stage 03 seams), count as one (split) mask.
+    (stage 03 seams), count as one (split) mask; where two masks meet along a seam too short
+    or too noisy to decide (an *unsure* seam), their view counts as neither between a group
+    that lies in that view alone and a group that other views see too.
 
 Before grouping, segments that look like one mask drawn over two objects are found
 (:func:`merged_mask_segments`: the segment spreads over two segments of another view that
@@ -75,6 +77,18 @@ class SegmentGraph:
     volume_b: np.ndarray
     volume_value: np.ndarray
     volume_mass: np.ndarray
+    # (S,) mask ids with the unsure neighbours of a view (stage 03 seams) made one id as well.  Where
+    # the ids of a group that lies in one view and a group that spans several differ in that view
+    # but these agree, the view neither joins nor parts them: the small piece a split cut off, with
+    # a seam too short to read, then joins the rest of its rock on what the other views show
+    # instead of staying alone.  Between two groups of one view each (nothing else speaks for
+    # either) or of several views each (two whole rocks touching at one depth, which under noisy
+    # depth all their seams leave unsure), the ids differ as before.  None: the same as ``instance``.
+    loose: np.ndarray | None = None
+
+    @property
+    def loose_instance(self) -> np.ndarray:
+        return self.instance if self.loose is None else self.loose
 
     @property
     def num_segments(self) -> int:
@@ -142,6 +156,7 @@ class _Groups:
         self.trials: list[list[float]] = graph.surface.on_mask.astype(np.float64).tolist()
         self.views = [{int(v): 1} for v in graph.view]
         self.view_ids = [{int(v): {int(i)}} for v, i in zip(graph.view, graph.instance)]  # view -> mask ids
+        self.view_loose = [{int(v): {int(i)}} for v, i in zip(graph.view, graph.loose_instance)]  # view -> loose ids
         self.version = np.zeros(s, dtype=np.int64)
         self.parent = np.arange(s)
         # edges[g][h] = [hits g->h, hits h->g, sum of volume value * mass, sum of volume mass]
@@ -172,8 +187,13 @@ class _Groups:
         shared = [v for v in ids_g if v in ids_h] if len(ids_g) <= len(ids_h) else [v for v in ids_h if v in ids_g]
         if not shared:
             return 0.0, 0.0
-        differ = sum(1 for v in shared if len(ids_g[v] | ids_h[v]) > 1)
-        return (len(shared) - differ) / len(shared), differ / len(shared)
+        # Unsure neighbours count as neither only between a group of one view and a group of several
+        # (see SegmentGraph.loose); otherwise as different mask ids.
+        one_view_g, one_view_h = len(self.views[g]) == 1, len(self.views[h]) == 1
+        loose_g, loose_h = (self.view_loose[g], self.view_loose[h]) if one_view_g != one_view_h else (ids_g, ids_h)
+        agree = sum(1 for v in shared if len(ids_g[v] | ids_h[v]) == 1)
+        differ = sum(1 for v in shared if len(loose_g[v] | loose_h[v]) > 1)  # the rest: unsure, neither
+        return agree / len(shared), differ / len(shared)
 
     def linkage(self, g: int, h: int) -> float:
         hits_gh, hits_hg, volume, mass = self.edges[g][h]
@@ -194,6 +214,8 @@ class _Groups:
             self.views[g][v] = self.views[g].get(v, 0) + n
         for v, ids in self.view_ids[h].items():
             self.view_ids[g].setdefault(v, set()).update(ids)
+        for v, ids in self.view_loose[h].items():
+            self.view_loose[g].setdefault(v, set()).update(ids)
         for other, (ho, oh, volume, mass) in self.edges[h].items():
             del self.edges[other][h]
             if other == g:
@@ -314,14 +336,23 @@ def _segment_group_linkage(graph: SegmentGraph, group: np.ndarray, config: Shado
     trials_out = (on_mask[seg] * (present > 0)).sum(axis=1)
     trials_in = group_on_mask[grp, graph.view[seg]]
 
-    mask_key = graph.view.astype(np.int64) * (int(graph.instance.max(initial=0)) + 1) + graph.instance
-    m_keys, m_count = np.unique(group * (int(mask_key.max()) + 1) + mask_key, return_counts=True)
-    lookup = grp * (int(mask_key.max()) + 1) + mask_key[seg]
-    at = np.minimum(np.searchsorted(m_keys, lookup), m_keys.size - 1)
-    same = np.where(m_keys[at] == lookup, m_count[at], 0) - own
-    # A lone segment shares at most its own view with a group: the ids agree there or not.
-    differ = (per_view[grp, graph.view[seg]] - own - same > 0).astype(np.float64)
-    agree = ((same > 0) & (differ == 0)).astype(np.float64)
+    def same_id(instance: np.ndarray) -> np.ndarray:
+        """Per pair: the group's members (the segment left out) in the segment's view with its id."""
+        mask_key = graph.view.astype(np.int64) * (int(instance.max(initial=0)) + 1) + instance
+        m_keys, m_count = np.unique(group * (int(mask_key.max()) + 1) + mask_key, return_counts=True)
+        lookup = grp * (int(mask_key.max()) + 1) + mask_key[seg]
+        at = np.minimum(np.searchsorted(m_keys, lookup), m_keys.size - 1)
+        return np.where(m_keys[at] == lookup, m_count[at], 0) - own
+
+    # A lone segment shares at most its own view with a group: the ids agree there, or the loose
+    # ids do (unsure: neither), or they differ.
+    others = per_view[grp, graph.view[seg]] - own
+    same = same_id(graph.instance)
+    same_loose = same if graph.loose is None else same_id(graph.loose)
+    agree = ((same > 0) & (same == others)).astype(np.float64)
+    # The lone segment lies in one view: unsure neighbours count as neither where the group spans several.
+    same_loose = np.where((present > 0).sum(axis=1) > 1, same_loose, same)
+    differ = (others - same_loose > 0).astype(np.float64)
     pairs = np.bincount(group, minlength=k)[grp] - own
     value = np.where(pairs > 0, linkage(hits_out, trials_out, hits_in, trials_in, volume, mass, agree, differ,
                                         config), 0.0)
@@ -393,8 +424,9 @@ def segment_confidence(graph: SegmentGraph, labels: np.ndarray, config: ShadowCo
 
 
 def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndarray, config: ShadowCorrConfig
-                   ) -> np.ndarray:
-    """Mask ids for the per-view constraints, with masks that other views show to be one object made one id.
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Mask ids for the per-view constraints, with masks that other views show to be one object made one id,
+    and the loose ids: the same with the unsure neighbours of a view made one id as well.
 
     Two segments a and b of one view v with different mask ids *co-land* on a segment t of
     another view when each lands mostly on t (``fusion_split_landing`` of its points that
@@ -415,22 +447,38 @@ def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndar
     unmended together: a half that no other view sees whole (the rock's other views show it
     under a merged mask, or the halves are each seen by a different view) co-lands nowhere,
     and the cannot-link of its view kept it apart from its other half.
+
+    Neighbours whose seam decides nothing (``surface.seams.unsure_first`` / ``unsure_second``)
+    share a loose id: where two groups' ids differ in a view but their loose ids agree, that
+    view neither joins nor parts them (:class:`SegmentGraph`).
     """
-    s = view.size
-    out = instance.copy()
-    if s == 0:
-        return out
+    if view.size == 0:
+        return instance.copy(), instance.copy()
     p, q = _colanding_pairs(surface, view, instance, config)
     # Neighbours of one view meeting on one smooth surface (stage 03 seams) count as well,
     # unless another view sees them apart: the seam needs no other view, which a rock seen
     # once, or seen elsewhere under a merged mask, lacks; in noisy depth two rocks can pass
-    # for one surface, and the views that see them apart say so.
-    seam_p, seam_q = surface.seams.first, surface.seams.second
-    if seam_p.size:
-        together = ~_seen_apart(_mostly_on(surface, view, config), instance, seam_p, seam_q)
-        p, q = np.r_[p, seam_p[together]], np.r_[q, seam_q[together]]
+    # for one surface, and the views that see them apart say so.  Likewise for the unsure ones.
+    mostly = None
+    seams = surface.seams
+    if seams.first.size or seams.unsure_first.size:
+        mostly = _mostly_on(surface, view, config)
+    if seams.first.size:
+        together = ~_seen_apart(mostly, instance, seams.first, seams.second)
+        p, q = np.r_[p, seams.first[together]], np.r_[q, seams.second[together]]
+    ids = _joined_ids(instance, p, q)
+    if seams.unsure_first.size == 0:
+        return ids, ids
+    together = ~_seen_apart(mostly, instance, seams.unsure_first, seams.unsure_second)
+    return ids, _joined_ids(instance, np.r_[p, seams.unsure_first[together]], np.r_[q, seams.unsure_second[together]])
+
+
+def _joined_ids(instance: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``instance`` with the segments that the pairs (``p``, ``q``) connect taking the smallest id among them."""
+    out = instance.copy()
     if p.size == 0:
         return out
+    s = instance.size
     graph = coo_matrix((np.ones(p.size), (p, q)), shape=(s, s))
     _, comp = connected_components(graph, directed=False)
     # Every segment of a component takes the smallest id of its members (ids compared within a view only).
@@ -614,11 +662,13 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
         volume = volume_pairs(scene, embeddings, config)
     instance, surface = scene.segment_instance, scene.surface
     merged = np.zeros(s, dtype=bool)
+    loose = None
     if config.method == "fused":
-        instance = split_mask_ids(surface, scene.segment_view, instance, config)
+        instance, loose = split_mask_ids(surface, scene.segment_view, instance, config)
         merged = merged_mask_segments(surface, scene.segment_view, instance, config)
         surface = without_landings_on(surface, scene.segment_view, merged)
-    graph = SegmentGraph(scene.segment_view, instance, surface, *volume)
+    graph = SegmentGraph(scene.segment_view, instance, surface, *volume,
+                         loose=None if loose is instance else loose)  # the same array when no pair is unsure
     if config.method == "projection":
         labels = link_components(scene.surface, scene.segment_view, config)
     else:
