@@ -16,8 +16,9 @@ from scipy.spatial.transform import Rotation
 
 from shadowcorr import correspond
 from shadowcorr.stages import oriented_boxes
+from shadowcorr.stages._05_occupancy import ShadowOccupancy
 from shadowcorr.stages._11_geometry import (SolidSamples, _largest_components, _near_samples, _quaternions, _UpFrame,
-                                            convex_hulls, min_area_angles)
+                                            convex_hulls, min_area_angles, object_volumes, one_view_cells)
 from shadowcorr.synth import SynthConfig, perturb
 from shadowcorr.synth.generate import synthesize
 from shadowcorr.synth.spheres import sphere_scene
@@ -88,6 +89,27 @@ def test_a_mask_missing_in_one_view_leaves_half_the_volume_as_uncertainty():
             assert 0.3 < obj.volume / true_volume < 0.7 and obj.volume_std > 0.3 * true_volume
         else:
             assert abs(obj.volume / true_volume - 1) <= 0.15
+
+
+def test_a_voxel_only_one_views_shadow_reaches_counts_half():
+    """Object 0 has segments in views 0 and 1 (segments 0, 1); object 1 one segment, in view 2.  Cell 0
+    lies in the shadows of both of object 0's views, cell 1 in view 0's alone (behind the rock there,
+    behind other rocks elsewhere): it counts half, with the other half in volume_std.  Object 1's cell
+    is in its only view's shadow: one view is all it has, so it counts whole."""
+    seg_object, segment_view = np.array([0, 0, 1]), np.array([0, 1, 2])
+    occupancy = ShadowOccupancy(
+        cell=np.array([[0, 0, 0], [1, 0, 0], [5, 0, 0]]), solid=np.array([1.0, 1.0, 1.0]),
+        single_view=np.zeros(3), segment=np.array([0, 0, 2]), samples=8,
+        member_cell=np.array([0, 0, 1, 1, 2]), member_segment=np.array([0, 1, 0, 2, 2]))
+    object_views = np.array([2, 1])
+    one_view = one_view_cells(occupancy, seg_object, segment_view, object_views)
+    assert one_view.tolist() == [False, True, False]  # cell 1: object 1's shadow there is another object's
+    volume, std = object_volumes(occupancy, seg_object, 2, voxel_size=2.0, unit_scale=1.0, one_view=one_view)
+    assert volume.tolist() == [1.5 * 8.0, 8.0]
+    # the half in doubt, and the sampling error of a cell read as half solid (8 samples)
+    assert std[0] == pytest.approx(np.hypot(0.5 * 8.0, np.sqrt(0.25 / 8) * 8.0)) and std[1] == pytest.approx(0.0)
+    whole, _ = object_volumes(occupancy, seg_object, 2, voxel_size=2.0, unit_scale=1.0)
+    assert whole.tolist() == [16.0, 8.0]
 
 
 def test_each_object_keeps_its_largest_connected_voxels():

@@ -58,6 +58,9 @@ class ShadowOccupancy:
     samples: int  # samples per cell (volume_subdivisions ** 3)
     solid_samples: np.ndarray | None = None  # (U, samples) bool: the cell's samples no view rules out
     offsets: np.ndarray | None = None  # (samples, 3) sample positions within a cell, in voxels from its centre
+    # Every (cell, segment) pair of the shadows over these cells: which segments' shadows reach each cell.
+    member_cell: np.ndarray | None = None  # (M,) int64 index into cell
+    member_segment: np.ndarray | None = None  # (M,) int64
 
     @classmethod
     def empty(cls, samples: int = 1) -> "ShadowOccupancy":
@@ -122,8 +125,10 @@ def shadow_occupancy(views: list[View], shadows: ShadowVoxels, unit_scale: float
         single[lo:lo + per_chunk] = background == 1
     share, single_share = solid.mean(axis=1), single.mean(axis=1)
     kept = (share > 0) | (single_share > 0)
+    renumbered = np.cumsum(kept) - 1
+    member = kept[member_cell]
     return ShadowOccupancy(cells[kept], share[kept], single_share[kept], best_segment[kept], samples,
-                           solid[kept], offsets)
+                           solid[kept], offsets, renumbered[member_cell[member]], shadows.segment[member])
 
 
 #: A view's depth is smoothed where its noise at the largest depth exceeds this share of a sample's spacing.

@@ -29,9 +29,12 @@ Once every segment has its object (stage 10), an object is described in 3D:
   span space that no view can rule out: behind the rock in the one view that sees that side
   and behind other rocks in every other view.
 * **Volume** (:func:`object_volumes`): the solid share of the voxels the object owns,
-  plus half the share that only one view's background rules out, times the voxel volume.
-  ``volume_std`` adds, in quadrature, that half (evidence a missed or eroded mask in one
-  view would fake, so the volume spans both readings within one standard deviation), the
+  plus half the share that only one view's background rules out, times the voxel volume;
+  of an object seen by several views, a voxel that the shadows of its segments in only one
+  view reach counts half too (:func:`one_view_cells`: behind the rock in that view and
+  behind other rocks in the rest, space no view rules out, mostly outside the rock).
+  ``volume_std`` adds, in quadrature, those halves (evidence of one view alone, so the
+  volume spans both readings within one standard deviation), the
   binomial sampling error of the sub-voxel samples, and
   ``volume_relative_std`` of the volume: the spread of the volume against the true mesh
   volume on synthetic scenes, which the data of one scene cannot show (parts no view saw).
@@ -454,21 +457,54 @@ def _nan_segment_reduce(ufunc: np.ufunc, values: np.ndarray, segment: np.ndarray
     return out
 
 
+def one_view_cells(occupancy: ShadowOccupancy, seg_object: np.ndarray, segment_view: np.ndarray,
+                   object_views: np.ndarray) -> np.ndarray:
+    """Per occupancy cell: whether only one view's segments of the cell's object cast a shadow over it,
+    while the object has segments in more than one view.
+
+    A rock's inside lies behind its surface in every view that sees it, so the shadows of its
+    segments in several views reach it.  A cell only one view's shadow of the object reaches lies
+    behind the rock in that view alone; if every other view's line of sight to it is blocked by
+    other rocks, no view rules it out, yet on generated rock fields most such space lies outside
+    the rock (the rock's far side, hidden from every view).
+    """
+    owner = seg_object[occupancy.segment]
+    if occupancy.member_cell is None or owner.size == 0:
+        return np.zeros(owner.size, dtype=bool)
+    cell, seg = occupancy.member_cell, occupancy.member_segment
+    own = (seg_object[seg] == owner[cell]) & (owner[cell] >= 0)
+    v = int(segment_view.max(initial=0)) + 1
+    pairs = np.unique(cell[own] * v + segment_view[seg[own]])
+    own_views = np.bincount(pairs // v, minlength=owner.size)
+    return (owner >= 0) & (own_views <= 1) & (object_views[np.maximum(owner, 0)] > 1)
+
+
 def object_volumes(occupancy: ShadowOccupancy | None, seg_object: np.ndarray, num_objects: int, voxel_size: float,
-                   unit_scale: float, relative_std: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Volume and its standard deviation per object (bundle units^3); NaN where none was measured."""
+                   unit_scale: float, relative_std: float = 0.0, one_view: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Volume and its standard deviation per object (bundle units^3); NaN where none was measured.
+
+    ``one_view`` (per occupancy cell, :func:`one_view_cells`): cells that one view's evidence
+    alone leaves solid count half, with the other half as uncertainty - as the share that one
+    view's background alone rules out.
+    """
     k = num_objects
     if occupancy is None or occupancy.cell.shape[0] == 0:
         return np.full(k, np.nan), np.full(k, np.nan)
     obj = seg_object[occupancy.segment]
     owned = obj >= 0
-    obj, single = obj[owned], occupancy.single_view[owned]
-    solid = occupancy.solid[owned] + single / 2.0  # one view's background alone: half solid, half uncertain
+    weak = np.zeros(obj.size, dtype=bool) if one_view is None else one_view
+    obj, single, weak = obj[owned], occupancy.single_view[owned], weak[owned]
+    # One view's evidence alone - its background in front of a sample, or its shadow alone over a
+    # cell - counts half solid, and the other half goes into the uncertainty.
+    full = np.where(weak, 0.0, occupancy.solid[owned])
+    half = single + np.where(weak, occupancy.solid[owned], 0.0)
+    solid = full + half / 2.0
     cell_volume = (voxel_size / unit_scale) ** 3
     volume = np.bincount(obj, weights=solid, minlength=k) * cell_volume
-    one_view = np.bincount(obj, weights=single, minlength=k) * cell_volume
+    uncertain = np.bincount(obj, weights=half, minlength=k) * cell_volume
     sampling_var = np.bincount(obj, weights=solid * (1.0 - solid) / occupancy.samples, minlength=k) * cell_volume ** 2
-    std = np.sqrt((one_view / 2.0) ** 2 + sampling_var + (relative_std * volume) ** 2)
+    std = np.sqrt((uncertain / 2.0) ** 2 + sampling_var + (relative_std * volume) ** 2)
     none = np.bincount(obj, minlength=k) == 0
     volume[none] = np.nan
     std[none] = np.nan
@@ -516,6 +552,10 @@ def object_geometry(cloud: ObjectPoints, occupancy: ShadowOccupancy | None, seg_
     """
     k = cloud.num_objects
     frame = _UpFrame.of(world_up(poses, config.up_axis))
+    seen = (seg_object >= 0) & (segment_points > 0)
+    pairs = np.unique(seg_object[seen] * (int(segment_view.max(initial=0)) + 1) + segment_view[seen])
+    num_views = np.bincount(pairs // (int(segment_view.max(initial=0)) + 1), minlength=k)
+    one_view = None if occupancy is None else one_view_cells(occupancy, seg_object, segment_view, num_views)
     samples = solid_samples(occupancy, seg_object, config.voxel_size, unit_scale)
     points, obj = cloud.points, cloud.object
     rejected = np.zeros(0, dtype=np.int64)
@@ -558,10 +598,7 @@ def object_geometry(cloud: ObjectPoints, occupancy: ShadowOccupancy | None, seg_
     quaternion = _quaternions(np.arctan2(rotation[:, :, 0] @ frame.h2, rotation[:, :, 0] @ frame.h1), frame)
     quaternion[~np.isfinite(size).all(axis=1)] = np.nan
     volume, volume_std = object_volumes(occupancy, seg_object, k, config.voxel_size, unit_scale,
-                                        config.volume_relative_std)
-    seen = (seg_object >= 0) & (segment_points > 0)
-    pairs = np.unique(seg_object[seen] * (int(segment_view.max(initial=0)) + 1) + segment_view[seen])
-    num_views = np.bincount(pairs // (int(segment_view.max(initial=0)) + 1), minlength=k)
+                                        config.volume_relative_std, one_view)
     seen = points
     if rejected.size:  # the extent spans the points the box spans: rejected rows drop out of the reductions
         seen = points.copy()
