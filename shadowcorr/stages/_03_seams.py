@@ -137,8 +137,9 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     found = [_neighbours(labels, dy, dx, config.fusion_seam_gap) for dy, dx in DIRECTIONS]
     rows, cols, a, b, d = (np.concatenate([f[i] for f in found]) for i in range(5))
     dy, dx = (np.repeat([direction[i] for direction in DIRECTIONS], [f[0].size for f in found]) for i in (0, 1))
-    # A pair with fewer samples than a seam needs is dropped before its sides are read (reading
-    # only ever removes samples): most border pairs are corners where three masks meet.
+    # A pair with fewer samples than a seam (or an unsure one) needs is dropped before its sides
+    # are read (reading only ever removes samples): most border pairs are corners where three
+    # masks meet.
     span = int(labels.max()) + 1
     key = np.minimum(a, b) * span + np.maximum(a, b)
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
@@ -184,9 +185,9 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     # a dozen samples, which in clean depth is short of the minimum and under noise cannot
     # tell a cut from a contour.  Such a pair's view says nothing about it (neither one mask
     # nor two), instead of keeping the piece apart from the rest of its rock.
-    unsure = ~smooth & (np.abs(median_step) <= config.fusion_seam_tolerance + config.fusion_seam_unsure * uncertainty)
-    if config.fusion_seam_unsure == 0:
-        unsure[:] = False
+    unsure = np.zeros_like(smooth)
+    if config.fusion_seam_unsure > 0:
+        unsure = ~smooth & (np.abs(median_step) <= config.fusion_seam_tolerance + config.fusion_seam_unsure * uncertainty)
     k, u = key[starts][smooth], key[starts][unsure]
     return Seams(k // span, k % span, counts[smooth].astype(np.int64), median_step[smooth], uncertainty[smooth],
                  u // span, u % span)
