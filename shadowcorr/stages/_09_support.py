@@ -284,4 +284,13 @@ def segment_support(groups: EvidenceGroups, config: ShadowCorrConfig) -> np.ndar
     if config.method != "fused":
         return segment_confidence(groups.graph, groups.labels, config)
     features = support_features(groups, config)
-    return support_calibration().probability(features) if len(features) else np.zeros(0)
+    if not len(features):
+        return np.zeros(0)
+    # The result states a support to 4 decimals, and a fitted probability is never a certainty:
+    # beyond 1 in 10,000 the fit (tens of thousands of segments) says nothing, so the support
+    # stays within [0.0001, 0.9999] instead of rounding to 0 or 1.
+    return np.clip(support_calibration().probability(features), SUPPORT_RESOLUTION, 1.0 - SUPPORT_RESOLUTION)
+
+
+#: The finest difference of ``fused``'s support from 0 or 1 that the result states.
+SUPPORT_RESOLUTION = 1e-4
