@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "ue_sample"  # ships with the repository
-DOCS_TABLE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "tables" / "scale.md"
+DOCS_TABLES = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "tables"  # scale-<source>.md
 
 
 def tile_scene(bases: list, spacing: float):
@@ -207,7 +207,7 @@ def main() -> int:
     parser.add_argument("--data", default=str(SAMPLE))
     parser.add_argument("--out", default="out")
     parser.add_argument("--embedding", action="store_true", help="only compare the segment-id embedding scopes")
-    parser.add_argument("--docs", nargs="?", const=str(DOCS_TABLE), default=None, metavar="PATH",
+    parser.add_argument("--docs", nargs="?", const="", default=None, metavar="PATH",
                         help="also write the rows as a Markdown table (default docs/benchmarks/tables/scale-<source>.md)")
     parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)  # child process mode
     args = parser.parse_args()
@@ -247,8 +247,8 @@ def main() -> int:
         cpu_slope = np.polyfit(x, np.log([r["cpu_s"] for r in rows]), 1)[0]
         print(f"growth exponent (log total time vs log rocks): wall {slope:.3f}, CPU {cpu_slope:.3f}")
         _plot(rows, slope, intercept, Path(args.out) / "scale.png")
-    if args.docs:
-        path = Path(args.docs if args.docs != str(DOCS_TABLE) else DOCS_TABLE.with_name(f"scale-{args.source}.md"))
+    if args.docs is not None:
+        path = Path(args.docs) if args.docs else DOCS_TABLES / f"scale-{args.source}.md"
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(docs_table(args, rows, load))
         print(f"wrote {path}")

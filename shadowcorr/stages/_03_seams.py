@@ -122,7 +122,7 @@ def smooth_seams(bundle: SceneBundle, segments: Segments, config: ShadowCorrConf
 
 
 def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig, noise: float | None = None) -> Seams:
-    """One view's smooth seams; ``noise`` is the view's relative depth noise (measured here when None)."""
+    """One view's smooth and unsure seams; ``noise`` is the view's relative depth noise (measured here when None)."""
     labels = np.asarray(image.window)
     if labels.size == 0:
         return Seams.empty()
