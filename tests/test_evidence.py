@@ -400,6 +400,34 @@ def test_a_merged_mask_joins_the_group_that_owns_most_of_its_surface():
     assert join_nearest_surface(labels, surface, view, np.zeros(4, bool), config) is labels
 
 
+def test_a_merged_mask_counts_the_other_views_surface_not_their_samples():
+    """A large segment's fixed number of sample points lie far apart, a small one's close together:
+    counted on samples, the merged mask's points find the small segment's surface more often and
+    the vote goes to the wrong rock.  The shells (one point per 2 cm cell of surface) count every
+    part alike."""
+    rng = np.random.default_rng(1)
+    # View 0: rock P, a large flat segment (x < 0, 2,450 cm^2), and rock Q, a small one (x > 0, 81 cm^2).
+    p_grid = np.stack(np.meshgrid(np.arange(-49.0, -0.5, 2.0), np.arange(0.0, 50.0, 2.0)), -1).reshape(-1, 2)
+    q_grid = np.stack(np.meshgrid(np.arange(1.0, 10.0, 2.0), np.arange(0.0, 9.5, 2.0)), -1).reshape(-1, 2)
+    p_shell, q_shell = np.c_[p_grid, np.zeros(len(p_grid))], np.c_[q_grid, np.zeros(len(q_grid))]
+    p_samples = p_shell[rng.choice(len(p_shell), 30, replace=False)]  # 30 samples over P: far apart
+    q_samples = np.c_[rng.uniform(1, 10, (100, 2)), np.zeros(100)]  # 100 over Q: close together
+    # View 1: a mask over both, 60 of its points on P and 40 on Q.
+    m_points = np.concatenate([np.c_[rng.uniform(-49, -1, 60), rng.uniform(0, 48, 60), np.zeros(60)],
+                               np.c_[rng.uniform(1, 9, (40, 2)), np.zeros(40)]])
+    samples = np.array([30, 100, 100])
+    points = np.concatenate([p_samples, q_samples, m_points]).astype(np.float32)
+    none = np.zeros(0, np.int64)
+    surface = SurfaceEvidence(samples, points, np.zeros((3, 2), np.int64), np.zeros((3, 2), np.int64), none, none,
+                              none)
+    view, merged, labels = np.array([0, 0, 1]), np.array([False, False, True]), np.array([0, 1, 2])
+    config = ShadowCorrConfig(method="fused")
+    shells = np.concatenate([p_shell, q_shell, m_points]).astype(np.float32)
+    shell_count = np.array([len(p_shell), len(q_shell), len(m_points)])
+    assert join_nearest_surface(labels, surface, view, merged, config, shells, shell_count).tolist() == [0, 1, 0]
+    assert join_nearest_surface(labels, surface, view, merged, config).tolist() == [0, 1, 1]  # on samples: Q
+
+
 @pytest.mark.parametrize("method", GRAPH_METHODS)
 def test_a_blob_without_depth_is_reported_as_what_happened_to_it(model, method):
     # View 0: the sphere's mask gets a second blob, far from the sphere and without valid depth.

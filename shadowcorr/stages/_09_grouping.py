@@ -41,7 +41,7 @@ both land back on it and that a third view sees apart), and landings *on* them a
 out of the evidence (:func:`without_landings_on`): everything under a merged mask lands on
 it, so those landings would chain its two objects together.  Its own landings stay.  After
 the agglomeration each merged mask joins the group that owns most of its surface, read from
-the nearest sample points of the other views (:func:`join_nearest_surface`).
+the nearest surface points of the other views (:func:`join_nearest_surface`).
 
 Each segment's ``confidence`` compares how strongly it is linked to its own group with the
 strongest alternative (another group, or standing alone); see :func:`segment_confidence`.
@@ -672,39 +672,55 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
     if config.method == "projection":
         labels = link_components(scene.surface, scene.segment_view, config)
     else:
-        labels = join_nearest_surface(agglomerate(graph, config), surface, scene.segment_view, merged, config)
+        labels = join_nearest_surface(agglomerate(graph, config), surface, scene.segment_view, merged, config,
+                                      scene.shell_points, scene.shell_count)
     return EvidenceGroups(labels[:s], graph, merged)
 
 
 def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.ndarray, segments: np.ndarray,
-                         config: ShadowCorrConfig) -> np.ndarray:
+                         config: ShadowCorrConfig, shell_points: np.ndarray | None = None,
+                         shell_count: np.ndarray | None = None) -> np.ndarray:
     """``labels`` with each of ``segments`` (merged masks) moved to the group that owns more than
     half of its surface, where one does.
 
     A mask drawn over two objects belongs, for its view, to the object under most of it.
     Its landings only count its points that other views see, and its linkage mixes in the
     volume it shares with both objects, so neither tells which object that is.  Its sample
-    points do: each one that has a sample point of another view's segment (other merged
-    masks left out) within ``projection_depth_tolerance`` votes for that segment's group;
-    with at least ``projection_min_points`` votes and a majority, the mask joins that group.
-    One k-d tree per view that holds a merged mask; nothing runs when there is none.
+    points do (spread evenly over its pixels): each one that has a surface point of another
+    view's segment (other merged masks left out) within ``projection_depth_tolerance`` votes
+    for that segment's group; with at least ``projection_min_points`` votes and a majority, the
+    mask joins that group.  One k-d tree per view that holds a merged mask; nothing runs when
+    there is none.
+
+    The other views' surface points are the segments' cleaned shells (``shell_points``, sorted by
+    segment, ``shell_count`` per segment: one point per ``downsample_size`` cell of surface), so
+    that every part of the surface is found as easily as any other.  Their sample points
+    instead (the fallback without shells) are a fixed number per segment: a large segment's lie
+    several centimetres apart, a small one's nearly touch, and under depth noise a point of M
+    finds the small segment's surface within the tolerance more often than the large one's -
+    the vote went to the rock with the smaller segments.  Measured on the quality benchmark's
+    default rig under the ``mild`` errors (10 scenes), four of the twelve merged masks found
+    joined the wrong rock that way, each by a close vote; counted on the shells, one.
     """
     if not segments.any():
         return labels
-    owner = np.repeat(np.arange(view.size), surface.samples)
+    if shell_points is None or shell_count is None:
+        reference, reference_owner = surface.points, np.repeat(np.arange(view.size), surface.samples)
+    else:
+        reference, reference_owner = shell_points, np.repeat(np.arange(view.size), shell_count)
     end = np.cumsum(surface.samples)
     out = labels.copy()
     for v in np.unique(view[segments]).tolist():
-        others = np.flatnonzero((view[owner] != v) & ~segments[owner])
+        others = np.flatnonzero((view[reference_owner] != v) & ~segments[reference_owner])
         if others.size == 0:
             continue
-        tree = KDTree(surface.points[others])
+        tree = KDTree(reference[others])
         for m in np.flatnonzero(segments & (view == v)).tolist():
             distance, nearest = tree.query(surface.points[end[m] - surface.samples[m]: end[m]], k=1)
             near = distance <= config.projection_depth_tolerance
             if near.sum() < config.projection_min_points:
                 continue
-            groups, votes = np.unique(labels[owner[others[nearest[near]]]], return_counts=True)
+            groups, votes = np.unique(labels[reference_owner[others[nearest[near]]]], return_counts=True)
             if votes.max() > 0.5 * near.sum():
                 out[m] = groups[np.argmax(votes)]
     return out
