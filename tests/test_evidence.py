@@ -391,7 +391,7 @@ def test_a_merged_mask_joins_the_group_that_owns_most_of_its_surface():
     joined = join_nearest_surface(labels, surface, view, merged, config)
     assert joined.tolist() == [0, 1, 0, 1]  # 2 to P (70 of 100 votes); 3 lies on Q's surface
     # Too few votes (points farther than the tolerance do not vote), or no majority: no move.
-    far = config.with_options(projection_depth_tolerance=0.1)
+    far = config.with_options(fusion_merge_reach=0.1)
     assert join_nearest_surface(labels, surface, view, merged, far).tolist() == [0, 1, 1, 3]
     split = surface.points.copy()
     split[200:300] = np.concatenate([on_p[:50], on_q[:30], on_q[:20]])
@@ -421,11 +421,32 @@ def test_a_merged_mask_counts_the_other_views_surface_not_their_samples():
     surface = SurfaceEvidence(samples, points, np.zeros((3, 2), np.int64), np.zeros((3, 2), np.int64), none, none,
                               none)
     view, merged, labels = np.array([0, 0, 1]), np.array([False, False, True]), np.array([0, 1, 2])
-    config = ShadowCorrConfig(method="fused")
+    config = ShadowCorrConfig(method="fused", fusion_merge_reach=3.0)  # only points the other view sees
     shells = np.concatenate([p_shell, q_shell, m_points]).astype(np.float32)
     shell_count = np.array([len(p_shell), len(q_shell), len(m_points)])
     assert join_nearest_surface(labels, surface, view, merged, config, shells, shell_count).tolist() == [0, 1, 0]
     assert join_nearest_surface(labels, surface, view, merged, config).tolist() == [0, 1, 1]  # on samples: Q
+
+
+def test_a_merged_mask_joins_the_rock_under_most_of_it_where_other_views_see_little_of_it():
+    """View 0 sees only the top strip of rock P (z 40..50 cm) and all of Q; the merged mask of view 1
+    has 70 points on P below that strip (up to 12 cm beneath it) and 30 on Q.  Within the depth
+    tolerance only the points on Q find a surface; within ``fusion_merge_reach`` P's points find P's."""
+    rng = np.random.default_rng(2)
+    p_seen = np.c_[np.zeros(200), rng.uniform(0, 40, 200), rng.uniform(40, 50, 200)]  # the plane x = 0
+    q_seen = np.c_[np.zeros(200), rng.uniform(60, 100, 200), rng.uniform(0, 50, 200)]
+    on_p = np.c_[np.zeros(70), rng.uniform(0, 40, 70), rng.uniform(28, 38, 70)]
+    on_q = q_seen[:30] + [0.5, 0.0, 0.0]
+    points = np.concatenate([p_seen, q_seen, on_p, on_q]).astype(np.float32)
+    samples = np.array([200, 200, 100])
+    none = np.zeros(0, np.int64)
+    surface = SurfaceEvidence(samples, points, np.zeros((3, 2), np.int64), np.zeros((3, 2), np.int64), none, none,
+                              none)
+    view, merged, labels = np.array([0, 0, 1]), np.array([False, False, True]), np.array([0, 1, 1])
+    config = ShadowCorrConfig(method="fused")
+    assert join_nearest_surface(labels, surface, view, merged, config).tolist() == [0, 1, 0]
+    tolerance = config.with_options(fusion_merge_reach=config.projection_depth_tolerance)
+    assert join_nearest_surface(labels, surface, view, merged, tolerance).tolist() == [0, 1, 1]
 
 
 @pytest.mark.parametrize("method", GRAPH_METHODS)
