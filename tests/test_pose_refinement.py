@@ -72,6 +72,18 @@ def test_clean_poses_are_kept_exactly(truth):
     np.testing.assert_array_equal(poses(nudged), poses(truth))
 
 
+def test_only_masks_that_agree_with_the_declared_poses_judge_a_correction():
+    """Masks that agree on 95-99 % of the shared surface with the declared poses (exact poses, depth
+    noise) turn down a correction that does not make them agree better; masks that agree on less
+    (a segmenter's errors at once, or poses far off) cannot judge, and the registration stands."""
+    from shadowcorr.stages._01_poses import _JUDGING_AGREEMENT, _masks_refuse
+
+    assert _masks_refuse(0.97, 0.95) and _masks_refuse(0.97, 0.97)
+    assert not _masks_refuse(0.97, 0.98)
+    assert not _masks_refuse(0.865, 0.792) and not _masks_refuse(0.70, 0.85)
+    assert _masks_refuse(_JUDGING_AGREEMENT, _JUDGING_AGREEMENT - 0.01)
+
+
 @pytest.mark.parametrize("correlation_px", [0.0, 4.0])
 def test_depth_noise_on_exact_poses_moves_no_pose_beyond_what_registration_resolves(truth, correlation_px):
     """1 % depth noise (7.5 cm at 7.5 m) read one pixel per sample misleads registration into
