@@ -35,8 +35,9 @@ def test_the_packaged_calibration_reads_this_versions_features():
     assert trees is not None and trees.depth >= 1
     assert trees.feature.shape == trees.threshold.shape == trees.left.shape == trees.right.shape == trees.value.shape
     assert 0 <= trees.feature.min() and trees.feature.max() < len(SUPPORT_FEATURES)
-    # Two grouped segments that land on each other sit right; the stray that its own evidence
-    # pulls towards them (alone, 50 of its 60 landings on their group) is worth checking.
+    # Two grouped segments that land on each other sit right (one of them with 30 of its 70
+    # landings in view 2 on the stray); the stray that its own evidence pulls towards them (alone,
+    # 50 of its 60 landings on their group) is worth checking.
     support = calibration.probability(support_features(_two_groups_and_a_stray(), ShadowCorrConfig()))
     assert (support[:2] > calibration.check_below).all()
     assert support[2] < calibration.check_below
@@ -112,7 +113,7 @@ def _two_groups_and_a_stray():
 
     on_mask = np.zeros((4, 3), dtype=np.int64)
     on_mask[0, 1], on_mask[0, 2], on_mask[1, 0], on_mask[2, 0] = 90, 70, 90, 60
-    source, target, count = np.array([0, 1, 0, 2]), np.array([1, 0, 2, 0]), np.array([80, 80, 60, 50])
+    source, target, count = np.array([0, 1, 0, 2]), np.array([1, 0, 2, 0]), np.array([80, 80, 30, 50])
     samples = np.full(4, 100)
     surface = SurfaceEvidence(samples, np.zeros((400, 3), np.float32), on_mask.copy(), on_mask, source, target, count)
     none = np.zeros(0, dtype=np.int64)
@@ -136,8 +137,8 @@ def test_support_features_read_the_group_and_its_rivals():
     assert column["pull_size"][2] == pytest.approx(np.log(101 / 201))
     assert column["pull_size"][0] == pytest.approx(np.log(201 / 101))
     assert column["pull_size"][3] == 0.0
-    # 60 of 0's 70 landings in view 2 fall on the other group there, none of 1's: their group's mean is 3/7.
-    np.testing.assert_allclose(column["group_other_share"][:2], [3 / 7, 3 / 7])
+    # 30 of 0's 70 landings in view 2 fall on the other group there, none of 1's: their group's mean is 3/14.
+    np.testing.assert_allclose(column["group_other_share"][:2], [3 / 14, 3 / 14])
     assert column["group_other_share"][2] == pytest.approx(50 / 60)  # 50 of its 60 landings in view 0 on 0
 
 
