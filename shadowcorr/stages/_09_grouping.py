@@ -705,8 +705,8 @@ def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.
     segment, ``shell_count`` per segment: one point per ``downsample_size`` cell of surface), so
     that every part of the surface is found as easily as any other.  Their sample points
     instead (the fallback without shells) are a fixed number per segment: a large segment's lie
-    several centimetres apart, a small one's nearly touch, and under depth noise a point of M
-    finds the small segment's surface within the tolerance more often than the large one's -
+    several centimetres apart, a small one's nearly touch, and under depth noise a point of the
+    mask finds the small segment's surface within the tolerance more often than the large one's -
     the vote went to the rock with the smaller segments.  Measured on the quality benchmark's
     default rig under the ``mild`` errors (10 scenes), four of the twelve merged masks found
     joined the wrong rock that way, each by a close vote; counted on the shells, one.
