@@ -713,10 +713,8 @@ def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.
     """
     if not segments.any():
         return labels
-    if shell_points is None or shell_count is None:
-        reference, reference_owner = surface.points, np.repeat(np.arange(view.size), surface.samples)
-    else:
-        reference, reference_owner = shell_points, np.repeat(np.arange(view.size), shell_count)
+    reference, count = (surface.points, surface.samples) if shell_points is None else (shell_points, shell_count)
+    reference_owner = np.repeat(np.arange(view.size), count)
     end = np.cumsum(surface.samples)
     out = labels.copy()
     for v in np.unique(view[segments]).tolist():
