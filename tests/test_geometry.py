@@ -171,9 +171,12 @@ def test_the_smallest_footprint_rectangle_of_a_turned_rectangle():
     np.testing.assert_allclose(abs(rotation[0, :2, 0] @ [3, 4]) / 5, 1.0, atol=1e-12)
 
 
-def test_convex_hulls_of_many_objects_at_once():
+@pytest.mark.parametrize("far", [0, 2**31], ids=["near", "keys-beyond-64-bits"])
+def test_convex_hulls_of_many_objects_at_once(far):
     """Each object's hull against qhull's, in any input order, with single points, collinear points and
-    repeated points among them; every rectangle found is the smallest over a fine sweep of turns."""
+    repeated points among them; every rectangle found is the smallest over a fine sweep of turns.  With one
+    object ``far`` away, (object, x, y) no longer packs into 64-bit keys and the points are sorted column by
+    column instead."""
     from scipy.spatial import ConvexHull
 
     rng = np.random.default_rng(3)
@@ -183,7 +186,8 @@ def test_convex_hulls_of_many_objects_at_once():
         spread = rng.normal(size=(2, 2)) * rng.uniform(0.3, 12)
         if k % 7 == 0:
             spread[:, 1] = 0.0  # collinear
-        parts.append(np.floor(rng.normal(size=(n, 2)) @ spread + rng.normal(size=2) * 40).astype(np.int64))
+        parts.append(np.floor(rng.normal(size=(n, 2)) @ spread + rng.normal(size=2) * 40).astype(np.int64)
+                     + (far if k == 39 else 0))
         owner.append(np.full(n, k))
     xy, obj = np.concatenate(parts), np.concatenate(owner)
     shuffle = rng.permutation(len(obj))

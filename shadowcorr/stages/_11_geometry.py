@@ -167,6 +167,20 @@ def _chain(x: np.ndarray, y: np.ndarray, obj: np.ndarray) -> tuple[np.ndarray, n
     return x, y, obj
 
 
+def _sorted_by_column(gx: np.ndarray, gy: np.ndarray, obj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points ordered by (object, x, y): one sort of packed int64 keys (three times faster than a
+    ``lexsort`` of the three columns), or the ``lexsort`` where the keys would not fit."""
+    x0, y0 = int(gx.min()), int(gy.min())
+    sx, sy = int(gx.max()) - x0 + 1, int(gy.max()) - y0 + 1
+    if float(sx) * sy * (float(obj.max()) + 1.0) >= 2.0 ** 62:
+        order = np.lexsort((gy, gx, obj))
+        return gx[order], gy[order], obj[order]
+    key = np.sort((obj * sx + (gx - x0)) * sy + (gy - y0))
+    obj, rest = np.divmod(key, sx * sy)
+    x, y = np.divmod(rest, sy)
+    return x + x0, y + y0, obj
+
+
 def convex_hulls(gx: np.ndarray, gy: np.ndarray, obj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each object's convex hull of integer points (``gx``, ``gy``): its vertices counter-clockwise, sorted by
     object, as (x, y, object).  No vertex repeats; a hull of one point is that point, of collinear points
@@ -175,10 +189,9 @@ def convex_hulls(gx: np.ndarray, gy: np.ndarray, obj: np.ndarray) -> tuple[np.nd
     Andrew's monotone chains on each grid column's lowest and highest point (one sort), each chain cut
     down by :func:`_chain` for all objects at once; integer cross products are exact.
     """
-    order = np.lexsort((gy, gx, obj))
-    gx, gy, obj = gx[order], gy[order], obj[order]
     if gx.size == 0:
         return gx, gy, obj
+    gx, gy, obj = _sorted_by_column(gx, gy, obj)
     new = np.r_[True, (gx[1:] != gx[:-1]) | (obj[1:] != obj[:-1])]
     first = np.flatnonzero(new)
     last = np.r_[first[1:] - 1, gx.size - 1]
@@ -473,10 +486,14 @@ def one_view_cells(occupancy: ShadowOccupancy, seg_object: np.ndarray, segment_v
         return np.zeros(owner.size, dtype=bool)
     cell, seg = occupancy.member_cell, occupancy.member_segment
     own = (seg_object[seg] == owner[cell]) & (owner[cell] >= 0)
-    v = int(segment_view.max(initial=0)) + 1
-    pairs = np.unique(cell[own] * v + segment_view[seg[own]])
-    own_views = np.bincount(pairs // v, minlength=owner.size)
-    return (owner >= 0) & (own_views <= 1) & (object_views[np.maximum(owner, 0)] > 1)
+    # One view at most: the lowest and the highest view of the cell's own shadows are the same (an
+    # unsorted scatter, linear in the members; a sort of the (cell, view) pairs took several times longer).
+    cell, view = cell[own], segment_view[seg[own]]
+    lowest = np.full(owner.size, np.iinfo(np.int64).max)
+    highest = np.full(owner.size, -1, dtype=np.int64)
+    np.minimum.at(lowest, cell, view)
+    np.maximum.at(highest, cell, view)
+    return (owner >= 0) & (highest <= lowest) & (object_views[np.maximum(owner, 0)] > 1)
 
 
 def object_volumes(occupancy: ShadowOccupancy | None, seg_object: np.ndarray, num_objects: int, voxel_size: float,
