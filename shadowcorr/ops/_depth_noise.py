@@ -20,9 +20,10 @@ def relative_depth_noise(depth: np.ndarray) -> float:
     for one number.  Invalid pixels (0, negative, not finite) drop out; 0 when fewer than 100
     valid triples remain.
     """
-    rows = np.asarray(depth, dtype=np.float64)[::2]
+    rows = np.asarray(depth[::2], dtype=np.float64)  # every other row before the conversion, not after
+    positive = rows > 0
     d2 = rows[:, :-2] - 2.0 * rows[:, 1:-1] + rows[:, 2:]
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.abs(d2) / rows[:, 1:-1] ** 2
-    ratio = ratio[np.isfinite(ratio) & (rows[:, :-2] > 0) & (rows[:, 1:-1] > 0) & (rows[:, 2:] > 0)]
+    ratio = ratio[np.isfinite(ratio) & positive[:, :-2] & positive[:, 1:-1] & positive[:, 2:]]
     return float(1.4826 * np.median(ratio) / np.sqrt(6.0)) if ratio.size >= 100 else 0.0
