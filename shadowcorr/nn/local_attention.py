@@ -36,7 +36,7 @@ __all__ = ["knn_within_scene", "knn_on_grid", "LocalAttention"]
 _KNN_BLOCK = 1 << 22
 # Elements of one (rows x k x channels) block of gathered neighbour features in attention: 1 MiB of
 # float32, so that a block's gather, its two batched products and its softmax stay in the cache (on the
-# sample scene, one thread, the network took 11.1 ms against 15.6 ms with blocks of 4M elements; the
+# sample scene, one thread, the network stage took 11.4 ms against 15.2 ms with blocks of 4M elements; the
 # embeddings are the same to the bit, every row being computed on its own either way).
 _ATTN_BLOCK = 1 << 18
 # The grid k-NN's sort keys are int32 below this (every scene up to about 14 million voxels).
