@@ -2,6 +2,7 @@
 
     python benchmarks/bench_engine.py [--repeats 7] [--cameras 0,2,4,6] [--model PATH] [--device cpu|cuda] [--threads 1]
                                       [--docs [PATH]]
+    python benchmarks/bench_engine.py --against REV [--repeats 15]     # this checkout against a git revision
 
 Prints milliseconds per stage (median wall time of ``result.timings_ms``) for two paths:
   in memory: decoded SceneBundle -> labels (pose refinement, segments, evidence, network, grouping)
@@ -14,6 +15,12 @@ Targets for a 4-view 1080p scene on one core: pose refinement <= 150 ms; everyth
 the GPU (every other stage stays on the CPU).  ``--docs`` also writes the figures as a Markdown table
 (default ``docs/benchmarks/tables/engine.md``, which the documentation's benchmark page includes),
 with the release, the machine and its load average, so that no figure is typed by hand.
+
+``--against REV`` compares this checkout's default with the library of a git revision (its
+``shadowcorr/`` exported from the repository and imported as a second package, with its own
+packaged model), both in this one process, one scene from each in turn, ``--repeats`` rounds on
+one thread: on a shared machine the same code runs several per cent faster or slower from one
+process to the next, which hides a change of a few milliseconds between two separate runs.
 """
 
 from __future__ import annotations
@@ -49,7 +56,11 @@ def main() -> int:
     parser.add_argument("--device", default="cpu", help="torch device of the network: cpu, cuda, cuda:N")
     parser.add_argument("--docs", nargs="?", const=str(DOCS_TABLE), default=None, metavar="PATH",
                         help=f"also write the figures to PATH (default {DOCS_TABLE.relative_to(REPO)})")
+    parser.add_argument("--against", metavar="REV", help="compare with the library of this git revision, both "
+                        "versions in one process, one scene each in turn (--repeats rounds)")
     args = parser.parse_args()
+    if args.against:
+        return compare_with(args.against, args.repeats, [int(c) for c in args.cameras.split(",")], args.data)
     load_before = os.getloadavg()[0]
     config = ShadowCorrConfig(num_threads=args.threads)
     torch.set_num_threads(resolve_threads(args.threads))
@@ -103,6 +114,68 @@ def main() -> int:
         path.write_text(docs_table(args, stages, totals, cpu, loads, disk, len(result.segments),
                                    (load_before, os.getloadavg()[0])))
         print(f"wrote {path}")
+    return 0
+
+
+def compare_with(rev: str, rounds: int, cameras: list[int], data: str) -> int:
+    """Median in-memory time and stage times of this checkout and of revision ``rev``, one process, one thread."""
+    import importlib
+    import subprocess
+    import tarfile
+
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = Path(tmp) / "library.tar"
+        try:
+            subprocess.run(["git", "-C", str(REPO), "archive", "--format=tar", "-o", str(archive), rev, "shadowcorr"],
+                           check=True, capture_output=True, text=True)
+        except (OSError, subprocess.CalledProcessError) as error:
+            detail = getattr(error, "stderr", "") or str(error)
+            print(f"cannot export shadowcorr/ of {rev!r} from {REPO}: {detail.strip()}", file=sys.stderr)
+            return 2
+        with tarfile.open(archive) as tar:
+            tar.extractall(tmp, filter="data")
+        # The revision's library as package "shadowcorr_ref": its modules import each other relatively;
+        # the one lookup of its own package data by name is pointed at the copy.
+        reference = Path(tmp) / "shadowcorr_ref"
+        (Path(tmp) / "shadowcorr").rename(reference)
+        for source in reference.rglob("*.py"):
+            text = source.read_text()
+            if 'resources.files("shadowcorr")' in text:
+                source.write_text(text.replace('resources.files("shadowcorr")', 'resources.files("shadowcorr_ref")'))
+        sys.path.insert(0, tmp)
+        versions = {}
+        for name, label in (("shadowcorr", "this checkout"), ("shadowcorr_ref", rev)):
+            library = importlib.import_module(name)
+            convert = importlib.import_module(name + ".convert")
+            config, model = library.ShadowCorrConfig(num_threads=1), library.load_model()
+            bundle = convert.load_ue_scene(data, 2001, cameras)
+            library.correspond(bundle, model, config, metrics=False)  # warm-up
+            versions[label] = (library, bundle, model, config)
+        totals: dict[str, list[float]] = {label: [] for label in versions}
+        stages: dict[str, dict[str, list[float]]] = {label: {} for label in versions}
+        for round_ in range(rounds):
+            # alternate which version goes first, so that neither always runs on the other's caches
+            for label in list(versions)[:: 1 if round_ % 2 == 0 else -1]:
+                library, bundle, model, config = versions[label]
+                t0 = time.perf_counter()
+                result = library.correspond(bundle, model, config, metrics=False)
+                totals[label].append((time.perf_counter() - t0) * 1e3)
+                for k, v in result.timings_ms.items():
+                    stages[label].setdefault(k, []).append(v)
+    med = statistics.median
+    this, other = versions
+    print(f"scene Set2001 cameras {','.join(map(str, cameras))}, one thread, {rounds} rounds in one process")
+    print(f"{'stage':<20}{'this checkout':>15}{rev[:12]:>15}{'difference':>12}")
+    names = list(stages[this]) + [k for k in stages[other] if k not in stages[this]]
+    for k in names:
+        if k == "total":
+            continue
+        a, b = (med(stages[label][k]) if k in stages[label] else None for label in (this, other))
+        shown = [f"{x:>15.1f}" if x is not None else f"{'-':>15}" for x in (a, b)]
+        print(f"{k:<20}{shown[0]}{shown[1]}{(a or 0.0) - (b or 0.0):>+12.1f}")
+    a, b = med(totals[this]), med(totals[other])
+    print(f"{'in memory -> labels':<20}{a:>15.1f}{b:>15.1f}{a - b:>+12.1f}   ({100 * (a / b - 1):+.1f} %)")
     return 0
 
 

@@ -510,3 +510,31 @@ def test_confidence_is_the_beta_profile_of_the_distance_to_the_averaged_shell():
         got[cell] = _confidence(pts, seg, vox_seg, vox_cell, config.voxel_size, 1e4, 2, config)
         np.testing.assert_allclose(got[cell], want, rtol=1e-12)
     assert not np.allclose(got[0.0], got[4.0])  # the averaging moved the distances
+
+
+def test_the_engine_benchmark_compares_this_checkout_with_a_revision_in_one_process():
+    """``bench_engine.py --against REV`` imports the revision's library beside this one and times both on the
+    sample scene, one after the other; an unknown revision is a clear error."""
+    import shutil
+    import subprocess
+    import sys
+
+    from .harness import REPO_ROOT
+
+    if shutil.which("git") is None or not (REPO_ROOT / ".git").exists():
+        pytest.skip("needs git and a git checkout")
+    if not SAMPLE.exists():
+        pytest.skip("the sample scene is not here")
+    script = str(REPO_ROOT / "benchmarks" / "bench_engine.py")
+    run = subprocess.run([sys.executable, script, "--against", "HEAD", "--repeats", "1"], cwd=REPO_ROOT,
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    header, rows = run.stdout.splitlines()[1], run.stdout.splitlines()[2:]
+    assert header.split() == ["stage", "this", "checkout", "HEAD", "difference"]
+    total = next(row for row in rows if row.startswith("in memory -> labels")).split()
+    assert float(total[4]) > 0 and float(total[5]) > 0  # both versions labelled the scene
+    network = next(row for row in rows if row.startswith("network")).split()
+    assert float(network[1]) > 0 and float(network[2]) > 0
+    bad = subprocess.run([sys.executable, script, "--against", "no-such-revision"], cwd=REPO_ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "no-such-revision" in bad.stderr
