@@ -715,10 +715,11 @@ def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.
         return labels
     reference, count = (surface.points, surface.samples) if shell_points is None else (shell_points, shell_count)
     reference_owner = np.repeat(np.arange(view.size), count)
+    reference_view = np.where(segments[reference_owner], -1, view[reference_owner])  # merged masks: no view
     end = np.cumsum(surface.samples)
     out = labels.copy()
     for v in np.unique(view[segments]).tolist():
-        others = np.flatnonzero((view[reference_owner] != v) & ~segments[reference_owner])
+        others = np.flatnonzero((reference_view != v) & (reference_view >= 0))
         if others.size == 0:
             continue
         tree = KDTree(reference[others])
