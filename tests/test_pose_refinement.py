@@ -121,7 +121,7 @@ def test_poses_are_corrected_under_depth_noise_and_eroded_masks(truth):
 
 
 def test_a_depth_window_averages_one_surface_and_keeps_edges_and_holes():
-    from shadowcorr.stages._01_poses import depth_on_grid
+    from shadowcorr.stages._01_registration import depth_on_grid
 
     rng = np.random.default_rng(0)
     plane = np.full((60, 60), 500.0) + rng.normal(0.0, 5.0, (60, 60))
@@ -221,7 +221,7 @@ def test_flat_ground_is_degenerate_and_keeps_the_poses():
 
 def test_many_views_register_few_partners_each_and_stay_connected():
     """Eight overlapping views: each is registered with a few partners, not all seven, and the graph stays whole."""
-    from shadowcorr.stages import _01_poses as pose_refinement  # private knob: partners per view
+    from shadowcorr.stages import _01_registration as registration  # private knob: partners per view
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -232,7 +232,7 @@ def test_many_views_register_few_partners_each_and_stay_connected():
     names = [v.name for v in truth.views]
     assert len(pairs) < 8 * 7 // 2
     assert max(len(r.neighbours) for r in reports) < 7
-    assert len(pairs) <= pose_refinement._MAX_PARTNERS * len(names)
+    assert len(pairs) <= registration._MAX_PARTNERS * len(names)
     index = [(names.index(a), names.index(b)) for a, b in pairs]
     graph = coo_matrix((np.ones(len(index)), tuple(np.array(index).T)), shape=(8, 8))
     assert connected_components(graph, directed=False)[0] == 1

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..bundle import Intrinsics, SceneBundle, View
 from ..stages import SegmentImage, Segments, voxel_downsample
-from ..stages._01_poses import depth_on_grid, sampling_stride  # the grid the pose stage samples
+from ..stages._01_registration import depth_on_grid, sampling_stride  # the grid the pose stage samples
 from ._store import MapFileError, unpack_array
 
 __all__ = ["LABELS_STRIDE", "SUMMARY_SIDE", "StoredViews", "ViewSummary", "grid_labels", "summarize_views",
