@@ -93,6 +93,8 @@ def main() -> None:
             scenes.append((rig, f"{rig} {3003 + k}", generate_scene(SynthConfig(**SYNTH_RIGS[rig][1]), 3003 + k)))
             print(f"generated {rig} {3003 + k} in {time.perf_counter() - t0:.1f} s", flush=True)
     kinds = list(dict.fromkeys(kind for kind, _, _ in scenes))
+    if not kinds:
+        parser.error("nothing to measure: give --subsets of the real scene or --synth-rigs")
 
     model = None if args.no_purity else load_model()
     on, off = ShadowCorrConfig(refine_poses=True), ShadowCorrConfig(refine_poses=False)
