@@ -7,7 +7,8 @@ sample's depth the mean of the ``pose_depth_window`` pixels around it on its sur
 any world point is matched with the surface by projecting it into the camera (``_Cloud``).
 :func:`_candidate_pairs` picks the view pairs worth registering and :func:`_register` registers
 one pair coarse to fine (small_gicp's GICP on thinned clouds, then point-to-plane Gauss-Newton by
-projective association) and says whether the result can be trusted (``_Pair``).  The pose graph,
+projective association) and says whether the result can be trusted (``_Pair``; among others, it
+must fit the surfaces better than the declared poses do).  The pose graph,
 the bounds and the masks' confirmation that turn pairs into corrections are in :mod:`._01_poses`,
 whose docstring describes the whole algorithm.
 """
@@ -383,7 +384,8 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
               ) -> tuple[_Pair | None, str]:
     """Coarse GICP (small_gicp, thinned clouds, wide matching), then point-to-plane on the moving
     grid samples (``_point_to_plane``); None (and why) when the result is not trustworthy (among
-    others, when less than ``min_overlap``, by default ``pose_min_overlap``, of the source matches)."""
+    others, when less than ``min_overlap``, by default ``pose_min_overlap``, of the source matches,
+    or when the declared poses fit the surfaces better: more matched surface per unit of residual)."""
     min_overlap = config.pose_min_overlap if min_overlap is None else min_overlap
     spacing = config.pose_point_spacing
     coarse = _coarse_match_distance(config, max(source.reach, target.reach))
@@ -413,7 +415,21 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
     if ratio < _MIN_CONSTRAINT_RATIO:
         return None, f"degenerate surface (constraint ratio {ratio:.1e}: the overlap does not pin every direction)"
     # Floored: two identical views fit exactly (residual 0), which must not outweigh every other pair.
-    weight = overlap / max(residual, _FINE_STOP_SPACING * spacing)
+    floor = _FINE_STOP_SPACING * spacing
+    weight = overlap / max(residual, floor)
+    # The declared poses are the alternative: a motion that fits the surfaces worse than they do
+    # (less matched surface per unit of residual, at the same matching distance) is a wrong
+    # minimum, not a correction.  Thin overlaps on grazing ground give such minima with exact
+    # poses: 1-4 degrees off at residuals twice the right fit's, which the masks then judged,
+    # and confirmed, where a segmenter had dropped masks.
+    declared, declared_target, declared_normals = _matches(source, target, np.eye(4), fine)
+    if declared.shape[1] >= 6:
+        declared_overlap = declared.shape[1] / source.points.shape[1]
+        declared_offset = np.einsum("ij,ij->j", declared - declared_target, declared_normals)
+        declared_residual = float(np.sqrt(np.mean(declared_offset**2)))
+        if weight < declared_overlap / max(declared_residual, floor):
+            return None, (f"fits worse than the declared poses (matched {overlap:.3f} at residual {residual:.3g}, "
+                          f"declared {declared_overlap:.3f} at {declared_residual:.3g} {config.units})")
     return _Pair(-1, -1, transform, residual, overlap, centre, extent, weight), "ok"
 
 
