@@ -53,6 +53,10 @@ _WINDOW_EDGE_SHARE = 0.1
 #: A pair is degenerate when the weakest direction of its point-to-plane information carries
 #: less than this share of the strongest (a flat or a cylindrical surface).
 _MIN_CONSTRAINT_RATIO = 1e-3
+#: A registration is not used when it fits the surfaces worse than this share of the declared
+#: poses' fit (matched share over residual): with exact poses a right registration ties with them
+#: within a few per cent, a wrong minimum on grazing ground reaches about half.
+_DECLARED_FIT_SHARE = 0.95
 #: Each view is registered with at most this many partners (those sharing the most surface),
 #: plus whatever keeps the overlap graph connected: registrations grow linearly with the views.
 _MAX_PARTNERS = 3
@@ -417,17 +421,17 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
     # Floored: two identical views fit exactly (residual 0), which must not outweigh every other pair.
     floor = _FINE_STOP_SPACING * spacing
     weight = overlap / max(residual, floor)
-    # The declared poses are the alternative: a motion that fits the surfaces worse than they do
-    # (less matched surface per unit of residual, at the same matching distance) is a wrong
-    # minimum, not a correction.  Thin overlaps on grazing ground give such minima with exact
-    # poses: 1-4 degrees off at residuals twice the right fit's, which the masks then judged,
-    # and confirmed, where a segmenter had dropped masks.
+    # The declared poses are the alternative: a motion that fits the surfaces clearly worse than
+    # they do (less matched surface per unit of residual, at the same matching distance) is a
+    # wrong minimum, not a correction.  Thin overlaps on grazing ground give such minima with
+    # exact poses: 1-4 degrees off at residuals twice the right fit's, which the masks then
+    # judged, and confirmed, where a segmenter had dropped masks.
     declared, declared_target, declared_normals = _matches(source, target, np.eye(4), fine)
     if declared.shape[1] >= 6:
         declared_overlap = declared.shape[1] / source.points.shape[1]
         declared_offset = np.einsum("ij,ij->j", declared - declared_target, declared_normals)
         declared_residual = float(np.sqrt(np.mean(declared_offset**2)))
-        if weight < declared_overlap / max(declared_residual, floor):
+        if weight < _DECLARED_FIT_SHARE * declared_overlap / max(declared_residual, floor):
             return None, (f"fits worse than the declared poses (matched {overlap:.3f} at residual {residual:.3g}, "
                           f"declared {declared_overlap:.3f} at {declared_residual:.3g} {config.units})")
     return _Pair(-1, -1, transform, residual, overlap, centre, extent, weight), "ok"
