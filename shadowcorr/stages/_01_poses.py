@@ -31,9 +31,10 @@ much of that surface, so the views can be registered to each other:
    ``pose_point_spacing`` or three noise sigmas), finishes.  A registration is used only
    when the surfaces overlap enough afterwards, the RMS point-to-plane residual is under
    ``pose_max_residual`` (or 1.5 noise sigmas), the surface constrains all six degrees of freedom (the
-   point-to-plane information matrix is not degenerate) and it fits the surfaces better than the
-   declared poses do (matched share over residual, at the same matching distance): a registration
-   that converged to a wrong minimum fits worse than where it started.  The views' clouds are made
+   point-to-plane information matrix is not degenerate) and it does not fit the surfaces clearly
+   worse than the declared poses (``_DECLARED_FIT_SHARE`` of their matched share over residual, at
+   the same matching distance): a registration that converged to a wrong minimum fits worse than
+   where it started.  The views' clouds are made
    ``num_threads`` at a time; registration keeps one thread (small_gicp's multi-threaded
    sums would make the result depend on the thread count).
    Views left without any usable pair are registered once more on their *grazing* surfaces

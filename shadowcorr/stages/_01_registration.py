@@ -8,7 +8,7 @@ any world point is matched with the surface by projecting it into the camera (``
 :func:`_candidate_pairs` picks the view pairs worth registering and :func:`_register` registers
 one pair coarse to fine (small_gicp's GICP on thinned clouds, then point-to-plane Gauss-Newton by
 projective association) and says whether the result can be trusted (``_Pair``; among others, it
-must fit the surfaces better than the declared poses do).  The pose graph,
+must not fit the surfaces clearly worse than the declared poses).  The pose graph,
 the bounds and the masks' confirmation that turn pairs into corrections are in :mod:`._01_poses`,
 whose docstring describes the whole algorithm.
 """
@@ -389,7 +389,8 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
     """Coarse GICP (small_gicp, thinned clouds, wide matching), then point-to-plane on the moving
     grid samples (``_point_to_plane``); None (and why) when the result is not trustworthy (among
     others, when less than ``min_overlap``, by default ``pose_min_overlap``, of the source matches,
-    or when the declared poses fit the surfaces better: more matched surface per unit of residual)."""
+    or when it fits the surfaces clearly worse than the declared poses: less than ``_DECLARED_FIT_SHARE``
+    of their matched surface per unit of residual)."""
     min_overlap = config.pose_min_overlap if min_overlap is None else min_overlap
     spacing = config.pose_point_spacing
     coarse = _coarse_match_distance(config, max(source.reach, target.reach))
