@@ -425,8 +425,8 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
     # The declared poses are the alternative: a motion that fits the surfaces clearly worse than
     # they do (less matched surface per unit of residual, at the same matching distance) is a
     # wrong minimum, not a correction.  Thin overlaps on grazing ground give such minima with
-    # exact poses: 1-4 degrees off at residuals twice the right fit's, which the masks then
-    # judged, and confirmed, where a segmenter had dropped masks.
+    # exact poses, 0.1-4 degrees off at up to twice the right fit's residual, and the masks
+    # confirmed some of them where a segmenter had dropped masks.
     declared, declared_target, declared_normals = _matches(source, target, np.eye(4), fine)
     if declared.shape[1] >= 6:
         declared_overlap = declared.shape[1] / source.points.shape[1]
