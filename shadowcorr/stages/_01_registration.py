@@ -342,6 +342,14 @@ def _matches(source: _Cloud, target: _Cloud, transform: np.ndarray, match: float
     return np.take(moved, keep, axis=1), np.take(matched, keep, axis=1), np.take(normals, keep, axis=1)
 
 
+def _fit(source: _Cloud, moved: np.ndarray, matched: np.ndarray, normals: np.ndarray) -> tuple[float, float]:
+    """How well matches (``_matches``) fit: the share of the source's moving points matched, and
+    their RMS point-to-plane residual (NaN without matches)."""
+    offset = np.einsum("ij,ij->j", moved - matched, normals)
+    residual = float(np.sqrt(np.mean(offset**2))) if offset.size else float("nan")
+    return moved.shape[1] / source.points.shape[1], residual
+
+
 def _point_to_plane(source: _Cloud, target: _Cloud, transform: np.ndarray, match: float, stop: float
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Refine ``transform`` (source surface -> target surface) by point-to-plane Gauss-Newton with
@@ -405,11 +413,9 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
     fine = max(_FINE_MATCH * spacing, _NOISE_MATCH * noise)
     transform, moved, matched, normals = _point_to_plane(source, target, np.asarray(result.T_target_source),
                                                          fine, _FINE_STOP_SPACING * spacing)
-    overlap = moved.shape[1] / source.points.shape[1]
+    overlap, residual = _fit(source, moved, matched, normals)
     if overlap < min_overlap:
         return None, f"overlap {overlap:.2f} < {min_overlap:.3g}"
-    offset = np.einsum("ij,ij->j", moved - matched, normals)
-    residual = float(np.sqrt(np.mean(offset**2)))
     max_residual = max(config.pose_max_residual, _NOISE_RESIDUAL * noise)
     if residual > max_residual:
         return None, f"residual {residual:.3g} > {max_residual:.3g} {config.units}"
@@ -427,11 +433,9 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
     # wrong minimum, not a correction.  Thin overlaps on grazing ground give such minima with
     # exact poses, 0.1-4 degrees off at up to twice the right fit's residual, and the masks
     # confirmed some of them where a segmenter had dropped masks.
-    declared, declared_target, declared_normals = _matches(source, target, np.eye(4), fine)
-    if declared.shape[1] >= 6:
-        declared_overlap = declared.shape[1] / source.points.shape[1]
-        declared_offset = np.einsum("ij,ij->j", declared - declared_target, declared_normals)
-        declared_residual = float(np.sqrt(np.mean(declared_offset**2)))
+    declared = _matches(source, target, np.eye(4), fine)
+    if declared[0].shape[1] >= 6:
+        declared_overlap, declared_residual = _fit(source, *declared)
         if weight < _DECLARED_FIT_SHARE * declared_overlap / max(declared_residual, floor):
             return None, (f"fits worse than the declared poses (matched {overlap:.3f} at residual {residual:.3g}, "
                           f"declared {declared_overlap:.3f} at {declared_residual:.3g} {config.units})")
