@@ -16,9 +16,11 @@ from scipy.spatial.transform import Rotation
 
 from shadowcorr import correspond
 from shadowcorr.stages import oriented_boxes
-from shadowcorr.stages._05_occupancy import ShadowOccupancy
-from shadowcorr.stages._11_geometry import (SolidSamples, _largest_components, _near_samples, _quaternions, _UpFrame,
-                                            convex_hulls, min_area_angles, object_volumes, one_view_cells)
+from shadowcorr import ShadowCorrConfig
+from shadowcorr.stages._05_occupancy import ShadowOccupancy, sample_offsets
+from shadowcorr.stages._11_geometry import (ObjectPoints, SolidSamples, _largest_components, _near_samples,
+                                            _quaternions, _UpFrame, convex_hulls, min_area_angles, object_geometry,
+                                            object_volumes, one_view_cells)
 from shadowcorr.synth import SynthConfig, perturb
 from shadowcorr.synth.generate import synthesize
 from shadowcorr.synth.spheres import sphere_scene
@@ -110,6 +112,30 @@ def test_a_voxel_only_one_views_shadow_reaches_counts_half():
     assert std[0] == pytest.approx(np.hypot(0.5 * 8.0, np.sqrt(0.25 / 8) * 8.0)) and std[1] == pytest.approx(0.0)
     whole, _ = object_volumes(occupancy, seg_object, 2, voxel_size=2.0, unit_scale=1.0)
     assert whole.tolist() == [16.0, 8.0]
+
+
+def test_a_box_ends_one_sub_cell_below_the_lowest_surface_point():
+    """Under a rock lies ground that every view sees only through the rock: its samples stay solid, here
+    down to 4 voxels below the rock.  The box stops one sub-cell (4 units: 8-unit voxels, 2 samples per
+    edge) below the lowest surface point (z = 0), not at the deepest solid sample."""
+    config = ShadowCorrConfig()
+    assert (config.voxel_size, config.volume_subdivisions) == (8.0, 2)
+    grid = np.stack(np.meshgrid(np.arange(0, 3), np.arange(0, 3), np.arange(-4, 3), indexing="ij"), -1).reshape(-1, 3)
+    offsets = sample_offsets(2)
+    occupancy = ShadowOccupancy(cell=grid, solid=np.ones(len(grid)), single_view=np.zeros(len(grid)),
+                                segment=np.zeros(len(grid), np.int64), samples=8,
+                                solid_samples=np.ones((len(grid), 8), bool), offsets=offsets,
+                                member_cell=np.arange(len(grid)), member_segment=np.zeros(len(grid), np.int64))
+    # the surface the views saw: the top and the sides of a 20-unit block standing on z = 0
+    rng = np.random.default_rng(2)
+    surface = rng.uniform([-2, -2, 0], [18, 18, 20], size=(400, 3))
+    cloud = ObjectPoints(surface, np.zeros(len(surface), np.int64), 1, "cm")
+    geometry = object_geometry(cloud, occupancy, np.array([0]), np.array([0]), np.array([400]), np.zeros((0, 4, 4)),
+                               1.0, config)
+    bottom = geometry.center[0, 2] - geometry.size[0, 2] / 2
+    assert bottom == pytest.approx(surface[:, 2].min() - 4.0)
+    top = geometry.center[0, 2] + geometry.size[0, 2] / 2
+    assert top == pytest.approx(2 * 8 + 0.25 * 8 + 2.0)  # the highest samples (voxel 2, +1/4 voxel), padded
 
 
 def test_each_object_keeps_its_largest_connected_voxels():

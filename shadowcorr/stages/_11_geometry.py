@@ -19,7 +19,9 @@ Once every segment has its object (stage 10), an object is described in 3D:
   spans the solid samples (each the centre of a sub-cell, padded by half a sub-cell) and the
   fused points that lie within one sub-cell of one of the object's solid samples.  Points
   farther out are seen by no other view where they are: mixed ("flying") depth pixels at the
-  rock's outline, which float between the rock and what lies behind it.  A rock rests on the
+  rock's outline, which float between the rock and what lies behind it.  It ends below at the
+  lowest of those points, less one sub-cell (``_FLOOR_ALLOWANCE``): the ground under a rock is
+  hidden behind the rock in every view, so its samples stay solid.  A rock rests on the
   ground, so a gravity-aligned box is what a planner grasps or drives around; the smallest
   footprint makes it tight for elongated and for blocky rocks alike.  On generated rock
   fields (``benchmarks/bench_geometry.py``, the same construction on the rocks' meshes) it
@@ -559,6 +561,14 @@ def with_geometry(objects: list[ObjectSummary], geometry: ObjectGeometry, suppor
     return out
 
 
+#: How far (sub-cells) an object's box reaches below the lowest surface point it spans: the part of a
+#: rock set into the ground.  On generated rock fields (rocks sunk 5 cm, sub-cells of 4 cm, exact images,
+#: ``benchmarks/bench_geometry.py``) 1 took the boxes within 1.5x of the true box from 97.7 to 98.1 % of
+#: the objects of 30 scenes (95th percentile 1.36 -> 1.29); on 10 scenes the boxes' height went from 1.16
+#: to 1.10 of the true one at the 95th percentile, with the median at 1.00 -> 0.99, where 0 cut it to 0.94.
+_FLOOR_ALLOWANCE = 1.0
+
+
 def object_geometry(cloud: ObjectPoints, occupancy: ShadowOccupancy | None, seg_object: np.ndarray,
                     segment_view: np.ndarray, segment_points: np.ndarray, poses: np.ndarray, unit_scale: float,
                     config: ShadowCorrConfig) -> ObjectGeometry:
@@ -608,6 +618,13 @@ def object_geometry(cloud: ObjectPoints, occupancy: ShadowOccupancy | None, seg_
         accepted, rejected = candidates[near], candidates[~near]
         lo = np.fmin(lo, segment_min(local[accepted], obj[accepted], k, empty=np.nan))
         hi = np.fmax(hi, segment_max(local[accepted], obj[accepted], k, empty=np.nan))
+        # The box's floor: beneath a rock, below where it meets the visible ground, lies ground that every
+        # view's line of sight passes through the rock to reach, so no view rules it out; the box ends at
+        # the lowest surface point it spans, less _FLOOR_ALLOWANCE sub-cells for a rock set into the ground.
+        spanned = np.ones(points.shape[0], dtype=bool)
+        spanned[rejected] = False
+        lowest_seen = segment_min(local[spanned, 2:], obj[spanned], k, empty=np.nan)[:, 0]
+        lo[:, 2] = np.fmax(lo[:, 2], lowest_seen - _FLOOR_ALLOWANCE * samples.spacing)
         # objects without solid samples: their points alone
         lo = np.where(has_samples[:, None], lo, segment_min(local, obj, k, empty=np.nan)) if not has_samples.all() else lo
         hi = np.where(has_samples[:, None], hi, segment_max(local, obj, k, empty=np.nan)) if not has_samples.all() else hi
