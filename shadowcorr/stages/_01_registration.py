@@ -392,13 +392,17 @@ def _gauss_newton(source: _Cloud, target: _Cloud, transform: np.ndarray, match: 
     return transform
 
 
-def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_overlap: float | None = None
-              ) -> tuple[_Pair | None, str]:
+def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_overlap: float | None = None,
+              from_declared: bool = False) -> tuple[_Pair | None, str]:
     """Coarse GICP (small_gicp, thinned clouds, wide matching), then point-to-plane on the moving
     grid samples (``_point_to_plane``); None (and why) when the result is not trustworthy (among
     others, when less than ``min_overlap``, by default ``pose_min_overlap``, of the source matches,
     or when it fits the surfaces clearly worse than the declared poses: less than ``_DECLARED_FIT_SHARE``
-    of their matched surface per unit of residual)."""
+    of their matched surface per unit of residual).
+
+    With ``from_declared``, point-to-plane also starts from the declared poses, and the motion that
+    fits better (matched share over residual) is taken: on a thin overlap of grazing ground, GICP's
+    wide matching can carry the surfaces into a wrong minimum that the fine stage cannot leave."""
     min_overlap = config.pose_min_overlap if min_overlap is None else min_overlap
     spacing = config.pose_point_spacing
     coarse = _coarse_match_distance(config, max(source.reach, target.reach))
@@ -414,6 +418,13 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
     transform, moved, matched, normals = _point_to_plane(source, target, np.asarray(result.T_target_source),
                                                          fine, _FINE_STOP_SPACING * spacing)
     overlap, residual = _fit(source, moved, matched, normals)
+    # Floored: two identical views fit exactly (residual 0), which must not outweigh every other pair.
+    floor = _FINE_STOP_SPACING * spacing
+    if from_declared:
+        other = _point_to_plane(source, target, np.eye(4), fine, _FINE_STOP_SPACING * spacing)
+        other_overlap, other_residual = _fit(source, *other[1:])
+        if other_overlap / max(other_residual, floor) > overlap / max(residual, floor):
+            (transform, moved, matched, normals), overlap, residual = other, other_overlap, other_residual
     if overlap < min_overlap:
         return None, f"overlap {overlap:.2f} < {min_overlap:.3g}"
     max_residual = max(config.pose_max_residual, _NOISE_RESIDUAL * noise)
@@ -425,8 +436,6 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
     ratio = _constraint_ratio(matched, normals, centre, extent)
     if ratio < _MIN_CONSTRAINT_RATIO:
         return None, f"degenerate surface (constraint ratio {ratio:.1e}: the overlap does not pin every direction)"
-    # Floored: two identical views fit exactly (residual 0), which must not outweigh every other pair.
-    floor = _FINE_STOP_SPACING * spacing
     weight = overlap / max(residual, floor)
     # The declared poses are the alternative: a motion that fits the surfaces clearly worse than
     # they do (less matched surface per unit of residual, at the same matching distance) is a
