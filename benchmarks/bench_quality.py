@@ -20,8 +20,10 @@ installation does not accept is skipped with one line.
 
 Synthetic scenes use generator seeds training never saw (dataset seed 9001; the shipped
 model was trained, validated and tested on 1001, 2002 and 3003) and are cached under
-``--cache`` (one folder per rig config), so reruns only evaluate.  The rigs of one scene
-index share the same rock field (the generator draws cameras from their own stream).
+``--cache`` (one folder per rig config and MuJoCo release), so reruns only evaluate.  The rigs
+of one scene index share the same rock field (the generator draws cameras from their own
+stream).  MuJoCo settles the rocks, and another release settles a seed into another field: the
+``synth`` extra pins the release the tables were made with.
 
 Output: one Markdown table per metric (mean ± std over scenes; the real scene's noisy rows
 over perturbation seeds) on stdout and in ``OUT/table.md``; every (scene, condition,
@@ -238,11 +240,16 @@ def synth_config(rig: str, overrides: dict[str, Any]) -> Any:
 
 
 def rig_cache_dir(cache: Path, rig: str, config: Any, seed: int) -> Path:
-    """One folder per (rig, generator config, seed): a changed config never reuses stale scenes.
+    """One folder per (rig, generator config, seed, MuJoCo release): a changed config never reuses
+    stale scenes, nor do scenes settled by another physics release (the same seed settles into
+    another field there).
 
     The key holds only the fields set away from their defaults, so a generator that gains a
     new knob (with a default) keeps finding the scenes already generated."""
-    key = json.dumps({"config": config.model_dump(mode="json", exclude_defaults=True), "seed": seed}, sort_keys=True)
+    from shadowcorr.synth.physics import physics_version
+
+    key = json.dumps({"config": config.model_dump(mode="json", exclude_defaults=True), "seed": seed,
+                      "physics": physics_version()}, sort_keys=True)
     digest = hashlib.sha256(key.encode()).hexdigest()[:10]
     return cache / f"{rig.replace(':', '_')}-{digest}"
 

@@ -34,7 +34,7 @@ from ..bundle import Intrinsics, SceneBundle, View
 from .cameras import Camera, make_rig
 from .config import SynthConfig
 from .noise import boundary_noise, morph_mask, noisy_depth, noisy_pose
-from .physics import PhysicsParams, place_rocks, settle
+from .physics import PhysicsParams, physics_version, place_rocks, settle
 from .rocks import RockMesh, make_rock, sample_diameters
 from .terrain import make_terrain
 
@@ -182,6 +182,7 @@ def synthesize(config: SynthConfig, seed: int) -> SynthScene:
         "seed": int(seed),
         "units": config.units,
         "renderer": backend,
+        "physics": physics_version(),
         "settled": settled.settled,
         "sim_time_s": round(settled.sim_time, 3),
         "rocks": [
@@ -289,6 +290,7 @@ def generate_dataset(
         "format": "shadowcorr-synth-dataset",
         "version": 1,
         "shadowcorr_version": __version__,
+        "physics": physics_version(),
         "seed": int(seed),
         "n_scenes": n_scenes,
         "seed_rule": "scene i uses SeedSequence([seed, i]).generate_state(1, uint32)[0]",

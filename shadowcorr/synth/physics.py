@@ -66,6 +66,12 @@ def import_mujoco() -> Any:
     return mujoco
 
 
+def physics_version() -> str:
+    """The MuJoCo release that settles the rocks, e.g. ``"mujoco 4.0.0"``: the same seed settles
+    into another field under another release, so scenes and their records carry it."""
+    return f"mujoco {import_mujoco().__version__}"
+
+
 @dataclass
 class PhysicsParams:
     """Knobs of the settling simulation (defaults measured to settle 20 rocks in ~1–2 s CPU)."""
