@@ -18,6 +18,8 @@ from shadowcorr.poses import look_at_pose
 from shadowcorr.result import Result
 from shadowcorr.synth.noise import perturbed_pose
 
+from .harness import load_bench_quality
+from .optional import needs_mujoco
 from .paths import SAMPLE_DIR as SAMPLE
 
 CONFIG = ShadowCorrConfig(refine_poses=True)
@@ -78,10 +80,23 @@ def test_only_masks_that_agree_with_the_declared_poses_judge_a_correction():
     (a segmenter's errors at once, or poses far off) cannot judge, and the registration stands."""
     from shadowcorr.stages._01_poses import _JUDGING_AGREEMENT, _masks_refuse
 
-    assert _masks_refuse(0.97, 0.95) and _masks_refuse(0.97, 0.97)
-    assert not _masks_refuse(0.97, 0.98)
-    assert not _masks_refuse(0.865, 0.792) and not _masks_refuse(0.70, 0.85)
-    assert _masks_refuse(_JUDGING_AGREEMENT, _JUDGING_AGREEMENT - 0.01)
+    # (samples where both masks say rock, samples where one does), before and after.
+    assert _masks_refuse((970, 30), (950, 50)) and _masks_refuse((970, 30), (970, 30))
+    assert not _masks_refuse((970, 30), (980, 20))
+    assert not _masks_refuse((865, 135), (792, 208)) and not _masks_refuse((700, 300), (850, 150))
+    judging = int(1000 * _JUDGING_AGREEMENT)
+    assert _masks_refuse((judging, 1000 - judging), (judging - 10, 1010 - judging))
+
+
+def test_a_gain_within_the_masks_sampling_noise_is_a_tie():
+    """Counts measured on the quality benchmark: exact poses under 2 % depth noise, corrected by
+    0.03-0.28 degrees (16 disagreeing samples of 1816 before, 15 of 1734 after), and a pair on
+    grazing ground moved 0.22 degrees off exact poses are ties; right corrections of half a degree
+    (11 of 1365 -> 8 of 1406; 79 of 864 -> 58 of 726 under a segmenter's errors) are confirmed."""
+    from shadowcorr.stages._01_poses import _masks_refuse
+
+    assert _masks_refuse((1800, 16), (1719, 15)) and _masks_refuse((474, 1), (483, 1))
+    assert not _masks_refuse((1354, 11), (1398, 8)) and not _masks_refuse((785, 79), (668, 58))
 
 
 @pytest.mark.parametrize("correlation_px", [0.0, 4.0])
@@ -460,3 +475,19 @@ def test_grazing_registrations_start_from_the_declared_poses_too(monkeypatch):
     gicp_only, both = errors(False), errors(True)
     assert gicp_only.size >= 10 and both.size >= gicp_only.size
     assert both.mean() < 0.85 * gicp_only.mean() and np.median(both) < np.median(gicp_only), (gicp_only, both)
+
+
+@needs_mujoco
+def test_exact_poses_under_depth_noise_stay_where_the_masks_only_tie():
+    """One scene of the quality benchmark (`syn:4v+depth2%`, scene 8): with exact poses and 2 %
+    depth noise, registration corrects the four views by 0.03-0.28 degrees and the masks agree
+    with the corrected poses a hair better than with the declared ones (15 disagreeing samples of
+    1734 against 16 of 1816).  That is a tie: every declared pose stays, and the labels with it."""
+    from shadowcorr.synth import generate_scene, scene_seed
+
+    bench = load_bench_quality()
+    exact = generate_scene(bench.synth_config("syn:4v", {}), scene_seed(9001, 8))
+    noisy = bench.perturb(exact, "depth2%", bench.perturbation_seed("syn:4v/8", "depth2%", 0))
+    refined, reports = refine_poses(noisy, CONFIG)
+    assert np.array_equal(poses(refined), poses(exact)), [(r.status, r.rotation_deg) for r in reports]
+    assert [r.status for r in reports] == ["not_confirmed"] * 4
