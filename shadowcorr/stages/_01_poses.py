@@ -71,9 +71,10 @@ much of that surface, so the views can be registered to each other:
    where two views see the same surface, they should agree on what is rock.  A group's
    corrections are applied only when, moved by them, the views' masks agree better than
    with the declared poses, by more than a tie (``_CONFIRM_STANDARD_ERRORS``); otherwise
-   every declared pose of the group stays (``not_confirmed``).  Only samples away from a mask's outline take part: a segmenter
-   that erodes its masks makes the outlines disagree exactly where the right poses let
-   the views see them, so outline samples spoke against good corrections.  The masks judge
+   every declared pose of the group stays (``not_confirmed``).  Only samples away from a
+   mask's outline take part: a segmenter that erodes its masks makes the outlines disagree
+   exactly where the right poses let the views see them, so outline samples spoke against
+   good corrections.  The masks judge
    only where they agree with the declared poses on at least ``_JUDGING_AGREEMENT`` (90 %)
    of the shared surface: then the declared poses already explain them, and a correction
    that does not improve them was read from depth noise (with exact poses and 1 % depth
@@ -274,10 +275,10 @@ def _masks_refuse(before: tuple[int, int], after: tuple[int, int]) -> bool:
     agree with the declared poses on at least ``_JUDGING_AGREEMENT`` judge (step 5 of the module
     docstring); those refuse a correction that does not make them agree better by more than
     ``_CONFIRM_STANDARD_ERRORS`` standard errors of the difference: a smaller gain is a tie."""
-    share_before, share_after = (agree / max(agree + disagree, 1) for agree, disagree in (before, after))
+    n_before, n_after = (max(agree + disagree, 1) for agree, disagree in (before, after))
+    share_before, share_after = before[0] / n_before, after[0] / n_after
     if share_before < _JUDGING_AGREEMENT:
         return False
-    n_before, n_after = (max(agree + disagree, 1) for agree, disagree in (before, after))
     spread = np.sqrt(share_before * (1.0 - share_before) / n_before + share_after * (1.0 - share_after) / n_after)
     return share_after - share_before <= _CONFIRM_STANDARD_ERRORS * spread
 
