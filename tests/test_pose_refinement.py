@@ -411,6 +411,32 @@ def test_low_cameras_register_on_the_ground_they_see_at_grazing_incidence(monkey
     assert np.array_equal(poses(refined), poses(noisy))
 
 
+def test_views_registered_only_on_grazing_ground_keep_their_declared_horizontal_position():
+    """A grazing overlap pins a view's tilt and height, not where it stands along the ground: the
+    corrected low cameras turn and move up or down, but their centres keep the declared horizontal
+    position; a view with a head-on partner keeps its whole correction."""
+    from shadowcorr.poses import world_up
+    from shadowcorr.stages._01_poses import _grazing_translations
+
+    truth = _low_rig()
+    noisy = perturbed(truth, 1.0, 2.5, seed=10)
+    refined, reports = refine_poses(noisy, CONFIG)
+    assert [r.status for r in reports] == ["corrected"] * 4
+    declared, moved = poses(noisy), poses(refined)
+    up = world_up(declared)[0]
+    flat = [a for a in range(3) if a != up]
+    assert np.abs(moved[:, :3, 3][:, flat] - declared[:, :3, 3][:, flat]).max() < 1e-6
+    assert min(r.rotation_deg for r in reports) > 0.1
+
+    angle = np.deg2rad(2.0)
+    turn = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    rotations, shifts = np.stack([turn, turn]), np.array([[0.3, -0.2, 0.05], [0.3, -0.2, 0.05]])
+    cameras = np.array([[5.0, 1.0, 0.8], [-4.0, 2.0, 0.8]])
+    kept = _grazing_translations(rotations, shifts, cameras, np.array([True, False]), (2, 1.0))
+    assert np.allclose(turn @ cameras[0] + kept[0], cameras[0] + [0.0, 0.0, 0.05])
+    assert np.array_equal(kept[1], shifts[1])
+
+
 def test_views_that_register_are_not_registered_again_on_grazing_surfaces(truth, monkeypatch):
     """The grazing pass is for views left without a pair; where every view registers it is not run."""
     from shadowcorr.stages import _01_poses as pose_refinement
