@@ -46,11 +46,7 @@ much of that surface, so the views can be registered to each other:
    into a wrong minimum that point-to-plane cannot leave, so point-to-plane also starts from the
    declared poses and the better fit of the two is taken (on the low rig of the quality benchmark
    with the ``mild`` errors, 30 scenes, the pairs' median relative rotation error went from 0.55
-   to 0.25 degrees).  Views that register are left as they were.  Ground shared at grazing
-   incidence pins a view's tilt and height but hardly where it stands along it, so a view
-   registered only on surfaces seen at under ``_GRAZING_INCIDENCE_DEG`` takes its correction's
-   rotation (about its own camera) and vertical shift, and keeps its declared horizontal position
-   (``_grazing_translations``).
+   to 0.25 degrees).  Views that register are left as they were.
 3. **Pose graph.**  Each accepted pair (i, j) measures ``T_ij``, the world-frame motion
    that brings view i's surface onto view j's, which ties the corrections:
    ``C_i = C_j T_ij``.  Rotations are averaged in the Lie algebra (iterated linear least
@@ -110,7 +106,6 @@ from scipy.spatial.transform import Rotation
 from ..bundle import SceneBundle, unit_scale
 from ..config import ShadowCorrConfig
 from ..ops import thread_map
-from ..poses import world_up
 from ..result import ViewPoseCorrection
 from ._01_registration import (
     _Cloud,
@@ -129,10 +124,6 @@ from ._01_registration import (
 #: spacings apart) and a pair need only match ``_GRAZING_OVERLAP_SHARE`` of ``pose_min_overlap``.
 _GRAZING_EDGE_RATIO = 12.0
 _GRAZING_OVERLAP_SHARE = 0.25
-#: A view registered only on grazing surfaces, each seen by the pair's two cameras at under this
-#: incidence on average (degrees, medians over the matched surface), keeps its declared horizontal
-#: position (``_grazing_translations``).
-_GRAZING_INCIDENCE_DEG = 20.0
 #: A point projected into another view is seen there when that view's depth at the pixel is
 #: within this share of the point's own depth (not hidden behind something, not in front).
 _VISIBLE_DEPTH_SHARE = 0.03
@@ -335,37 +326,6 @@ def _grazing_pairs(bundle: SceneBundle, sampled: list, clouds: list[_Cloud | Non
     return tried
 
 
-def _grazing_translations(rotations: np.ndarray, translations: np.ndarray, camera_offset: np.ndarray,
-                          grazing: np.ndarray, up: tuple[int, float]) -> np.ndarray:
-    """``translations`` with each ``grazing`` view's correction turned about its own camera centre,
-    the centre moving only up or down (``up``: the world's up axis, ``poses.world_up``).
-
-    A view registered only on its grazing surfaces (``_grazing_pairs``), every one of them seen by
-    both cameras at a median incidence under ``_GRAZING_INCIDENCE_DEG`` on average, shares mostly
-    ground with the other views: the overlap pins its tilt and its height above that ground, but
-    hardly where it stands along it, and there registration slides.  On the low rig of the quality
-    benchmark under the ``mild`` errors (30 scenes), the full corrections left such views' points
-    7-10 cm from where they belong in the scenes that lost most, against 3-4 cm with the declared
-    poses, while their rotation errors shrank.  Taking the rotation and the vertical shift, and
-    keeping the declared horizontal position, scored 97.96 there against 97.48 with the full
-    corrections and 97.74 without refinement (``field``: 95.57 against 95.54 and 94.65; ``harsh``:
-    86.84 against 87.04 and 86.38).  Only the rotation (the centre not moving at all) scored 97.98
-    under ``mild`` but 94.92 under ``field``, where the cameras stand 2.5 cm off.  The two opposite
-    cameras of ``syn:2v-opposite``, 3.3 m high, also register only on the grazing pass, but see
-    the surface they share at 21-24 degrees (the low rig's pairs: under 20 in 92 of 99): rocks' sides
-    that pin them every way.  Kept in place too, they lost 0.5 and 0.9 points under ``field`` and
-    ``harsh``.
-    """
-    out = translations.copy()
-    axis = up[0]
-    # A correction moves camera centre o to R o + t; turned about the camera itself, t = o - R o.
-    turned = np.einsum("kij,kj->ki", rotations[grazing], camera_offset[grazing])
-    vertical = (turned + translations[grazing] - camera_offset[grazing])[:, axis]
-    out[grazing] = camera_offset[grazing] - turned
-    out[grazing, axis] += vertical
-    return out
-
-
 def _groups(n: int, edges: list[_Pair]) -> np.ndarray:
     """Connected group label of every view in the graph of ``edges`` (a view without edges is its own group)."""
     src = [e.source for e in edges]
@@ -438,9 +398,6 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
             why.setdefault(j, f"registration with {bundle.views[i].name}: {reason}")
             continue
         edges.append(dataclasses.replace(pair, source=i, target=j))
-    first_pass = np.zeros(n, dtype=bool)
-    for e in edges:
-        first_pass[[e.source, e.target]] = True
     candidates = sorted(set(candidates) | set(_grazing_pairs(bundle, sampled, clouds, edges, why, centre, scale, cell,
                                                              config)))
 
@@ -470,18 +427,6 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
                       f"{config.pose_max_translation / scale:.3g} {bundle.units}); pose kept")
         edges = [e for e in edges if worst not in (e.source, e.target)]
 
-    # The graph's solution, before views registered only on grazing surfaces give up their
-    # horizontal shift: how consistent the registrations are is judged on what they measured.
-    graph_translations = translations
-    # A view's registrations pin its horizontal position unless every one of them is on surface
-    # both cameras see at grazing incidence (their mean, the pair's median).
-    incidence = np.zeros(n)
-    for e in edges:
-        incidence[[e.source, e.target]] = np.maximum(incidence[[e.source, e.target]], np.mean(e.incidence))
-    grazing = ~first_pass & (incidence < _GRAZING_INCIDENCE_DEG)
-    translations = _grazing_translations(rotations, translations, camera_offset, grazing,
-                                         world_up(np.stack([v.pose for v in bundle.views]), config.up_axis))
-    degrees, shifts = _correction_sizes(rotations, translations, camera_offset)
     in_graph = np.zeros(n, dtype=bool)
     for e in edges:
         in_graph[[e.source, e.target]] = True
@@ -532,7 +477,7 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
                           "registration is not borne out by the scene; pose kept")
     incident: list[list[_Pair]] = [[] for _ in range(n)]
     worst_miss = np.zeros(n)
-    for e, m in zip(edges, _disagreements(edges, rotations, graph_translations)):
+    for e, m in zip(edges, _disagreements(edges, rotations, translations)):
         for k in (e.source, e.target):
             incident[k].append(e)
             worst_miss[k] = max(worst_miss[k], m)
