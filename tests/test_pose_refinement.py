@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from shadowcorr import ShadowCorrConfig, correspond
 from shadowcorr.bundle import Intrinsics, SceneBundle, View
@@ -409,6 +410,62 @@ def test_low_cameras_register_on_the_ground_they_see_at_grazing_incidence(monkey
     refined, reports = refine_poses(noisy, CONFIG)
     assert [r.status for r in reports] == ["not_registered"] * 4
     assert np.array_equal(poses(refined), poses(noisy))
+
+
+def test_views_registered_only_on_grazing_ground_keep_their_declared_horizontal_position(monkeypatch):
+    """A grazing overlap pins a view's tilt and height, not where it stands along the ground: views
+    registered only on surfaces seen at under ``_GRAZING_INCIDENCE_DEG`` turn and move up or down,
+    but their centres keep the declared horizontal position.  This rig's half-buried boulders show
+    their sides to both cameras of each pair (24-25 degrees on average): the whole correction stands."""
+    from shadowcorr.poses import world_up
+    from shadowcorr.stages import _01_poses as pose_refinement
+    from shadowcorr.stages._01_poses import _keep_grazing_positions
+
+    truth = _low_rig()
+    noisy = perturbed(truth, 1.0, 2.5, seed=10)
+    declared = poses(noisy)
+    up = world_up(declared)[0]
+    flat = [a for a in range(3) if a != up]
+
+    def horizontal_moves(refined: SceneBundle) -> np.ndarray:
+        return np.abs(poses(refined)[:, :3, 3][:, flat] - declared[:, :3, 3][:, flat]).max(axis=1)
+
+    refined, reports = refine_poses(noisy, CONFIG)
+    assert [r.status for r in reports] == ["corrected"] * 4
+    assert horizontal_moves(refined).min() > 0.1  # cm
+    monkeypatch.setattr(pose_refinement, "_GRAZING_INCIDENCE_DEG", 30.0)
+    refined, reports = refine_poses(noisy, CONFIG)
+    assert [r.status for r in reports] == ["corrected"] * 4
+    assert horizontal_moves(refined).max() < 1e-6 and min(r.rotation_deg for r in reports) > 0.1
+
+    angle = np.deg2rad(2.0)
+    turn = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    rotations, shifts = np.stack([turn, turn]), np.array([[0.3, -0.2, 0.05], [0.3, -0.2, 0.05]])
+    cameras = np.array([[5.0, 1.0, 0.8], [-4.0, 2.0, 0.8]])
+    turns, kept = _keep_grazing_positions(rotations, shifts, cameras, np.array([True, False]), np.array([0, 0]), (2, 1.0))
+    assert np.allclose(turn @ cameras[0] + kept[0], cameras[0] + [0.0, 0.0, 0.05])
+    assert np.array_equal(kept[1], shifts[1]) and np.array_equal(turns, rotations)
+    # Two grazing views of one group: the group's common turn about the up axis is taken out first,
+    # so cameras rotated about their own centres (what the graph returns minus its zero-mean turn)
+    # come back with the rotations each camera needs, and stay where they were declared.
+    own = np.stack([turn, turn.T])
+    common = Rotation.from_rotvec([0.0, 0.0, np.deg2rad(0.7)]).as_matrix()
+    graph_rotations = common.T @ own
+    graph_shifts = np.stack([common.T @ (c - r @ c) for c, r in zip(cameras, own)])
+    turns, kept = _keep_grazing_positions(graph_rotations, graph_shifts, cameras, np.array([True, True]),
+                                          np.array([0, 0]), (2, 1.0))
+    assert np.allclose(turns, own) and np.allclose(np.einsum("kij,kj->ki", turns, cameras) + kept, cameras)
+
+
+def test_incidence_is_the_angle_between_the_rays_and_the_surface():
+    """Ground seen from 80 cm at 7.5 m is grazing (about 6 degrees); seen from straight above, 90."""
+    from shadowcorr.stages._01_registration import _median_incidence
+
+    xy = np.stack(np.meshgrid(np.linspace(-1.0, 1.0, 5), np.linspace(6.5, 8.5, 5)), axis=-1).reshape(-1, 2)
+    ground = np.c_[xy, np.zeros(len(xy))]
+    up = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    assert 5.0 < _median_incidence(ground, up, np.array([0.0, 0.0, 0.8])) < 7.0
+    assert _median_incidence(ground, up, np.array([0.0, 7.5, 10.0])) > 80.0
 
 
 def test_views_that_register_are_not_registered_again_on_grazing_surfaces(truth, monkeypatch):

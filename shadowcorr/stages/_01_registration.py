@@ -114,6 +114,7 @@ class _Pair:
     centre: np.ndarray  # (3,) centroid of the matched surface (centred frame)
     extent: float  # RMS distance of the matched surface from ``centre``: the lever of a rotation
     weight: float  # in the pose graph: overlap / residual, the residual floored at what registration resolves
+    incidence: tuple[float, float] = (90.0, 90.0)  # median degrees between each camera's rays and the matched surface
 
 
 def sampling_stride(height: int, width: int) -> int:
@@ -448,7 +449,18 @@ def _register(source: _Cloud, target: _Cloud, config: ShadowCorrConfig, min_over
         if weight < _DECLARED_FIT_SHARE * declared_overlap / max(declared_residual, floor):
             return None, (f"fits worse than the declared poses (matched {overlap:.3f} at residual {residual:.3g}, "
                           f"declared {declared_overlap:.3f} at {declared_residual:.3g} {config.units})")
-    return _Pair(-1, -1, transform, residual, overlap, centre, extent, weight), "ok"
+    # Each camera's view of the matched surface, the source camera moved with its surface.
+    incidence = (_median_incidence(matched, normals, transform[:3, :3] @ source.camera[:, 0] + transform[:3, 3]),
+                 _median_incidence(matched, normals, target.camera[:, 0]))
+    return _Pair(-1, -1, transform, residual, overlap, centre, extent, weight, incidence), "ok"
+
+
+def _median_incidence(points: np.ndarray, normals: np.ndarray, camera: np.ndarray) -> float:
+    """Median angle (degrees) between the rays of a camera at ``camera`` and a surface, points and
+    unit normals as (N, 3) rows: 90 seen head-on, a few degrees at grazing incidence."""
+    ray = points - camera
+    sine = np.abs(np.einsum("ij,ij->i", ray, normals)) / np.linalg.norm(ray, axis=1)
+    return float(np.degrees(np.arcsin(min(float(np.median(sine)), 1.0))))
 
 
 def _candidate_pairs(clouds: list[_Cloud | None], min_overlap: float) -> list[tuple[int, int]]:
