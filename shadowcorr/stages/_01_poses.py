@@ -505,8 +505,9 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
     for e in edges:
         incidence[[e.source, e.target]] = np.maximum(incidence[[e.source, e.target]], np.mean(e.incidence))
     grazing = ~first_pass & (incidence < _GRAZING_INCIDENCE_DEG)
+    group = _groups(n, edges)
     rotations, translations = _keep_grazing_positions(
-        rotations, translations, camera_offset, grazing, _groups(n, edges),
+        rotations, translations, camera_offset, grazing, group,
         world_up(np.stack([v.pose for v in bundle.views]), config.up_axis))
     degrees, shifts = _correction_sizes(rotations, translations, camera_offset)
     in_graph = np.zeros(n, dtype=bool)
@@ -523,7 +524,6 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
     # metres from the scene centre, the lever arm turns 0.04 deg of noise into a centimetre.
     surface = np.stack([c.points.mean(axis=1) if c is not None else camera_offset[k] for k, c in enumerate(clouds)])
     surface_shifts = _correction_sizes(rotations, translations, surface)[1]
-    group = _groups(n, edges)
     for g in np.unique(group[in_graph]):
         members = [k for k in np.flatnonzero(group == g) if status[k] == "corrected"]
         if members and all(degrees[k] < config.pose_min_rotation_deg
