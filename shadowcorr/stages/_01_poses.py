@@ -310,9 +310,7 @@ def _grazing_pairs(bundle: SceneBundle, sampled: list, clouds: list[_Cloud | Non
     Accepted pairs join ``edges`` (and ``clouds`` takes the grazing cloud of a view that had none);
     returns the pairs tried.
     """
-    paired = np.zeros(len(clouds), dtype=bool)
-    for e in edges:
-        paired[[e.source, e.target]] = True
+    paired = _paired(len(clouds), edges)
     if paired.all() or len(clouds) < 2:
         return []
     grazing = thread_map(lambda vs: _make_cloud(*vs, centre, scale, config, _GRAZING_EDGE_RATIO),
@@ -392,6 +390,14 @@ def _keep_grazing_positions(rotations: np.ndarray, translations: np.ndarray, cam
     return rotations, translations
 
 
+def _paired(n: int, edges: list[_Pair]) -> np.ndarray:
+    """(n,) whether each view has at least one of ``edges``."""
+    paired = np.zeros(n, dtype=bool)
+    for e in edges:
+        paired[[e.source, e.target]] = True
+    return paired
+
+
 def _groups(n: int, edges: list[_Pair]) -> np.ndarray:
     """Connected group label of every view in the graph of ``edges`` (a view without edges is its own group)."""
     src = [e.source for e in edges]
@@ -464,9 +470,7 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
             why.setdefault(j, f"registration with {bundle.views[i].name}: {reason}")
             continue
         edges.append(dataclasses.replace(pair, source=i, target=j))
-    first_pass = np.zeros(n, dtype=bool)
-    for e in edges:
-        first_pass[[e.source, e.target]] = True
+    first_pass = _paired(n, edges)
     candidates = sorted(set(candidates) | set(_grazing_pairs(bundle, sampled, clouds, edges, why, centre, scale, cell,
                                                              config)))
 
@@ -510,9 +514,7 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
         rotations, translations, camera_offset, grazing, group,
         world_up(np.stack([v.pose for v in bundle.views]), config.up_axis))
     degrees, shifts = _correction_sizes(rotations, translations, camera_offset)
-    in_graph = np.zeros(n, dtype=bool)
-    for e in edges:
-        in_graph[[e.source, e.target]] = True
+    in_graph = _paired(n, edges)
     for k in np.flatnonzero(~in_graph):
         if status[k] == "corrected":
             status[k] = "not_registered"

@@ -114,7 +114,7 @@ class _Pair:
     centre: np.ndarray  # (3,) centroid of the matched surface (centred frame)
     extent: float  # RMS distance of the matched surface from ``centre``: the lever of a rotation
     weight: float  # in the pose graph: overlap / residual, the residual floored at what registration resolves
-    incidence: tuple[float, float] = (90.0, 90.0)  # median degrees between each camera's rays and the matched surface
+    incidence: tuple[float, float]  # median degrees between each camera's rays and the matched surface
 
 
 def sampling_stride(height: int, width: int) -> int:
