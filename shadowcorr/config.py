@@ -186,9 +186,10 @@ class ShadowCorrConfig(BaseModel):
                                       "split, at least this share on each, over two segments that both land mostly "
                                       "on it and that a third view sees apart, is read as a merged mask: landings on "
                                       "it are no evidence (see shadowcorr.stages.merged_mask_segments; 0: never)")
-    fusion_merge_reach: float = Field(15.0, gt=0, description="a merged mask joins the group whose surface, seen by "
-                                      "other views, lies nearest to most of its points, counting those within this "
-                                      "distance (units; see shadowcorr.stages.join_nearest_surface)")
+    fusion_merge_reach: float = Field(15.0, gt=0, description="a merged mask of which other views see too few "
+                                      "points joins the group whose surface lies nearest to most of its points, "
+                                      "counting those within this distance (units; see "
+                                      "shadowcorr.stages.join_nearest_surface)")
     fusion_threshold: float = Field(0.0, description="groups merge while their linkage exceeds this")
     fusion_confidence_slope: float = Field(4.0, gt=0, description="slope of the logistic turning a segment's "
                                            "linkage margin into its confidence")

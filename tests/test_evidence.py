@@ -421,7 +421,9 @@ def test_a_merged_mask_counts_the_other_views_surface_not_their_samples():
     surface = SurfaceEvidence(samples, points, np.zeros((3, 2), np.int64), np.zeros((3, 2), np.int64), none, none,
                               none)
     view, merged, labels = np.array([0, 0, 1]), np.array([False, False, True]), np.array([0, 1, 2])
-    config = ShadowCorrConfig(method="fused", fusion_merge_reach=3.0)  # only points the other view sees
+    # Only points the other view sees vote, each for itself: a depth tolerance no point meets leaves
+    # the vote to the reach (see the next tests for what the tolerance does).
+    config = ShadowCorrConfig(method="fused", fusion_merge_reach=3.0, projection_depth_tolerance=0.01)
     shells = np.concatenate([p_shell, q_shell, m_points]).astype(np.float32)
     shell_count = np.array([len(p_shell), len(q_shell), len(m_points)])
     assert join_nearest_surface(labels, surface, view, merged, config, shells, shell_count).tolist() == [0, 1, 0]
@@ -445,8 +447,37 @@ def test_a_merged_mask_joins_the_rock_under_most_of_it_where_other_views_see_lit
     view, merged, labels = np.array([0, 0, 1]), np.array([False, False, True]), np.array([0, 1, 1])
     config = ShadowCorrConfig(method="fused")
     assert join_nearest_surface(labels, surface, view, merged, config).tolist() == [0, 1, 0]
+    # Reaching only as far as the depth tolerance, P's points below the strip still follow the
+    # mask's points that view 0 sees just beneath it.
     tolerance = config.with_options(fusion_merge_reach=config.projection_depth_tolerance)
-    assert join_nearest_surface(labels, surface, view, merged, tolerance).tolist() == [0, 1, 1]
+    assert join_nearest_surface(labels, surface, view, merged, tolerance).tolist() == [0, 1, 0]
+    # Without them (nothing seen within a tolerance no point meets), only Q's points find a surface.
+    blind = tolerance.with_options(projection_depth_tolerance=0.01)
+    assert join_nearest_surface(labels, surface, view, merged, blind).tolist() == [0, 1, 1]
+
+
+def test_a_merged_masks_points_no_other_view_sees_follow_the_masks_nearest_seen_points():
+    """Rock Q's side faces rock P (the wall x = 5 cm, seen by view 0, hidden from view 1).  View 1's
+    merged mask has 60 points on P's top (x -30..0 cm) and 40 on Q's top, which lies further back
+    (x 20..40); view 0 sees only P's far strip (x < -24).  Within ``fusion_merge_reach`` the P points
+    near the wall find Q's side first, and a vote of each point for its nearest surface gives the
+    mask to Q; following the mask's own points that view 0 sees (P's strip, Q's top), it goes to P."""
+    rng = np.random.default_rng(3)
+    p_strip = np.c_[rng.uniform(-30, -24, 200), rng.uniform(0, 20, 200), np.zeros(200)]
+    q_side = np.c_[np.full(200, 5.0), rng.uniform(0, 20, 200), rng.uniform(-10, 0, 200)]
+    q_top = np.c_[rng.uniform(20, 40, 200), rng.uniform(0, 20, 200), np.zeros(200)]
+    on_p = np.c_[np.linspace(-30, 0, 60), rng.uniform(0, 20, 60), np.zeros(60)]
+    on_q = np.c_[rng.uniform(20, 40, 40), rng.uniform(0, 20, 40), np.zeros(40)]
+    points = np.concatenate([p_strip, q_side, q_top, on_p, on_q]).astype(np.float32)
+    samples = np.array([200, 400, 100])
+    none = np.zeros(0, np.int64)
+    surface = SurfaceEvidence(samples, points, np.zeros((3, 2), np.int64), np.zeros((3, 2), np.int64), none, none,
+                              none)
+    view, merged, labels = np.array([0, 0, 1]), np.array([False, False, True]), np.array([0, 1, 1])
+    config = ShadowCorrConfig(method="fused")
+    assert join_nearest_surface(labels, surface, view, merged, config).tolist() == [0, 1, 0]
+    blind = config.with_options(projection_depth_tolerance=0.01)  # each point votes for its nearest surface
+    assert join_nearest_surface(labels, surface, view, merged, blind).tolist() == [0, 1, 1]
 
 
 @pytest.mark.parametrize("method", GRAPH_METHODS)
