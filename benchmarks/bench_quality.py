@@ -300,24 +300,104 @@ def perturbation_seed(scene_key: str, perturbation: str, repeat: int) -> int:
                                        zlib.crc32(perturbation.encode()), repeat]).generate_state(1)[0])
 
 
-def perturb(bundle: Any, perturbation: str, seed: int) -> Any:
-    """The bundle under one perturbation, single or combined (its parts in order, one stream)."""
+def _object_image(view: Any, ground_truth: str) -> np.ndarray:
+    """(H, W) true object under every pixel of a view's mask (-1: none), from its ground truth."""
+    if ground_truth == "instance":
+        return np.where(view.mask > 0, view.mask, -1).astype(np.int64)
+    table = view.instance_objects or {}
+    ids = np.unique(view.mask)
+    lookup = np.array([table.get(int(i), -1) if i > 0 else -1 for i in ids], dtype=np.int64)
+    return lookup[np.searchsorted(ids, view.mask)]
+
+
+def _majority(first: np.ndarray, second: np.ndarray) -> dict[int, int]:
+    """Per value of ``first``: the value of ``second`` on most of its pixels (ties: the lower)."""
+    pairs, pixels = np.unique(np.stack([first, second]).astype(np.int64), axis=1, return_counts=True)
+    order = np.lexsort((pairs[1], -pixels, pairs[0]))
+    top = order[np.r_[True, pairs[0, order][1:] != pairs[0, order][:-1]]] if order.size else order
+    return dict(zip(pairs[0, top].tolist(), pairs[1, top].tolist()))
+
+
+def _merged_masks(before: Any, after: Any, final: Any) -> dict[str, dict[int, set[int]]]:
+    """Per view: the masks of ``final`` that descend from a mask ``merge_touching`` fused
+    (``before`` -> ``after``), each with the objects it was drawn over.  A later split or
+    erosion keeps most of a mask's pixels under its parent's id, so each final mask descends
+    from the fused mask under most of its pixels."""
+    out: dict[str, dict[int, set[int]]] = {}
+    for old, new, last in zip(before.views, after.views, final.views):
+        objects = _object_image(old, before.ground_truth)
+        fresh = new.mask > old.mask.max()  # merge_touching gives every fused mask a fresh id
+        drawn: dict[int, set[int]] = {}
+        under = fresh & (objects >= 0)
+        for mask_id, obj in np.unique(np.stack([new.mask[under], objects[under]]).astype(np.int64), axis=1).T:
+            drawn.setdefault(int(mask_id), set()).add(int(obj))
+        both = (last.mask > 0) & (new.mask > 0)
+        parent = _majority(last.mask[both], new.mask[both]) if both.any() else {}
+        found = {k: drawn[p] for k, p in parent.items() if len(drawn.get(p, ())) > 1}
+        if found:
+            out[last.name] = found
+    return out
+
+
+def perturb(bundle: Any, perturbation: str, seed: int, merged: dict | None = None) -> Any:
+    """The bundle under one perturbation, single or combined (its parts in order, one stream).
+
+    ``merged``, when given, receives the masks that a merge drew over several objects (per view
+    name: mask id -> those objects; for :func:`segment_truth`)."""
     from shadowcorr.synth import perturb as perturbations
 
     rng = np.random.default_rng(seed)
+    fused = None
     for part in COMBINED[perturbation][1] if perturbation in COMBINED else (perturbation,):
         _, fn, kwargs = PERTURBATIONS[part]
-        bundle = getattr(perturbations, fn)(bundle, rng, **kwargs)
+        before, bundle = bundle, getattr(perturbations, fn)(bundle, rng, **kwargs)
+        if fn == "merge_touching":
+            fused = (before, bundle)
+    if merged is not None and fused is not None and bundle.ground_truth != "none":
+        merged.update(_merged_masks(*fused, bundle))
     return bundle
 
 
-def segment_truth(bundle: Any, result: Any) -> np.ndarray:
-    """True object of every result segment (-1 = none), from the bundle's ground truth (scoring only)."""
+def segment_truth(bundle: Any, result: Any, clean: Any = None, merged: dict | None = None,
+                  config: Any = None) -> np.ndarray:
+    """True object of every result segment (-1 = none), from the bundle's ground truth (scoring only).
+
+    The bundle's truth is per mask: the object the mask was drawn for; a merged mask's is the
+    object owning most of its pixels.  A segment is one blob of a mask, and a merged mask's blob
+    can lie on the other rock: erosion or a split line cuts the mask where the rocks touch, and
+    a split half keeps its parent's truth.  Scored against the mask's rock, the blob a method
+    rightly gives to its own rock counts wrong.  So, given ``clean`` (the bundle before the
+    perturbation: the same images, exact masks) and ``merged`` (from :func:`perturb`), a segment
+    of a merged mask is scored by the object under most of its own pixels, one of those the
+    merge drew the mask over (``shadowcorr.synth.perturb.merge_touching`` already gives the
+    pieces it finds apart their own truth).  Every other mask keeps its truth: a dilated mask
+    spills over its neighbours and still names its rock.  ``config`` cuts the masks into blobs
+    as the run did.
+    """
     views = {v.name: v for v in bundle.views}
     if bundle.ground_truth == "instance":
-        return np.array([s.instance for s in result.segments], dtype=np.int64)
-    return np.array([(views[s.view].instance_objects or {}).get(s.instance, -1) for s in result.segments],
-                    dtype=np.int64)
+        truth = np.array([s.instance for s in result.segments], dtype=np.int64)
+    else:
+        truth = np.array([(views[s.view].instance_objects or {}).get(s.instance, -1) for s in result.segments],
+                         dtype=np.int64)
+    if clean is None or not merged:
+        return truth
+    from shadowcorr import ShadowCorrConfig
+    from shadowcorr.stages import find_blobs
+
+    config = config or ShadowCorrConfig()
+    exact = {v.name: v for v in clean.views}
+    for name, masks in merged.items():
+        blobs = find_blobs(views[name].mask, config.split_components, config.min_blob_pixels)
+        objects = _object_image(exact[name], clean.ground_truth)
+        on = (blobs.labels >= 0) & (objects >= 0)
+        owner = _majority(blobs.labels[on], objects[on]) if on.any() else {}
+        blob_of = {(int(i), int(c)): b for b, (i, c) in enumerate(zip(blobs.instance, blobs.component))}
+        for k, seg in enumerate(result.segments):
+            b = blob_of.get((seg.instance, seg.component)) if seg.view == name and seg.instance in masks else None
+            if b is not None and truth[k] >= 0 and owner.get(b) in masks[seg.instance]:
+                truth[k] = owner[b]
+    return truth
 
 
 def wrong_segments(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
@@ -347,11 +427,10 @@ def support_threshold(method: str) -> float:
     return SUPPORT_FLAG
 
 
-def support_flag_scores(bundle: Any, result: Any, method: str) -> dict[str, Any]:
+def support_flag_scores(result: Any, method: str, truth: np.ndarray) -> dict[str, Any]:
     """How well ``support < support_threshold(method)`` finds the wrong segments (counts for precision
     and recall), and per support bin the segments, their summed support and how many sit right
-    (for the expected calibration error)."""
-    truth = segment_truth(bundle, result)
+    (for the expected calibration error); ``truth`` from :func:`segment_truth`."""
     wrong = wrong_segments(truth, np.array(result.labels, dtype=np.int64))
     support = np.array([s.support for s in result.segments], dtype=np.float64)
     scored = truth >= 0
@@ -399,13 +478,15 @@ def run_task(task: Task) -> Task:
     """Load the scene, then every (condition, method) run on it; one record each."""
     import shadowcorr
     from shadowcorr.convert import load_ue_scene
+    from shadowcorr.evaluation import segment_metrics
 
     clean = load_ue_scene(task.scene, REAL_SET, task.cameras) if task.cameras else shadowcorr.load_bundle(task.scene)
     for name, perturbation, seed in task.conditions:
         methods = [m for m in task.methods if (name, m) not in task.done]
         if not methods:
             continue
-        bundle = clean if perturbation is None else perturb(clean, perturbation, seed)
+        merged: dict[str, dict[int, set[int]]] = {}
+        bundle = clean if perturbation is None else perturb(clean, perturbation, seed, merged)
         for method in methods:
             base = {"condition": name, "rig": task.rig, "perturbation": perturbation, "scene": task.scene_index,
                     "scene_name": task.scene_name, "perturbation_seed": seed if perturbation else None,
@@ -417,8 +498,10 @@ def run_task(task: Task) -> Task:
                 task.records.append({**base, "error": f"{type(err).__name__}: {err}"})
                 continue
             wall, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+            truth = segment_truth(bundle, result, clean, merged, method_config(method))
+            scores = {**(result.metrics or {}), **segment_metrics(truth, np.array(result.labels, dtype=np.int64))}
             task.records.append({
-                **base, **(result.metrics or {}), **support_flag_scores(bundle, result, method),
+                **base, **scores, **support_flag_scores(result, method, truth),
                 "time_ms": result.timings_ms.get("total", wall), "wall_ms": wall, "cpu_ms": cpu,
             })
     return task

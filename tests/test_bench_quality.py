@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -128,3 +129,29 @@ def test_wrong_segments_and_conditions():
     assert {f"{rig}+{k}" for rig in (*bench.SYNTH_RIGS, *bench.REAL_RIGS) for k in bench.COMBINED} <= set(names)
     assert all(p in bench.PERTURBATIONS for _, parts in bench.COMBINED.values() for p in parts)
     assert [c.name for c in bench.select(bench.all_conditions(quick=True), "real:0*")][:2] == ["real:0246", "real:012"]
+
+
+def test_a_merged_masks_blobs_are_scored_by_the_rock_under_them():
+    bench = load_bench_quality()
+
+    def bundle(mask, table):
+        return SimpleNamespace(views=[SimpleNamespace(name="cam0", mask=mask, instance_objects=table)],
+                               ground_truth="mapped")
+
+    exact = np.zeros((20, 40), np.int32)
+    exact[2:18, 2:18], exact[2:18, 18:38] = 1, 2  # rocks 1 and 2 touch at column 18
+    fused = np.where(exact > 0, 3, 0)  # a merge: one mask over both, rock 2 owns most of it
+    cut = fused.copy()
+    cut[:, 16:20] = 0  # erosion cuts it where the rocks touch: blob 0 (larger) on rock 2, blob 1 on rock 1
+    clean, after_merge, final = bundle(exact, {1: 1, 2: 2}), bundle(fused, {3: 2}), bundle(cut, {3: 2})
+    merged = bench._merged_masks(clean, after_merge, final)
+    assert merged == {"cam0": {3: {1, 2}}}
+    result = SimpleNamespace(segments=[SimpleNamespace(view="cam0", instance=3, component=c) for c in (0, 1)])
+    assert bench.segment_truth(final, result).tolist() == [2, 2]  # the mask's truth
+    assert bench.segment_truth(final, result, clean, merged).tolist() == [2, 1]  # each blob's own rock
+    # a mask no merge drew over both (as a dilated mask spilling over its neighbour) keeps its truth
+    assert bench.segment_truth(final, result, clean, {}).tolist() == [2, 2]
+    # the mask's descendants are found through a later split: a fresh id on part of the mask
+    split = cut.copy()
+    split[:, :16] = np.where(cut[:, :16] > 0, 4, 0)
+    assert bench._merged_masks(clean, after_merge, bundle(split, {3: 2, 4: 2})) == {"cam0": {3: {1, 2}, 4: {1, 2}}}
