@@ -400,6 +400,15 @@ def test_a_merged_mask_joins_the_group_that_owns_most_of_its_surface():
     assert join_nearest_surface(labels, surface, view, np.zeros(4, bool), config) is labels
 
 
+def _two_segments_and_a_merged_mask(points: np.ndarray, samples: list[int], labels: tuple[int, ...] = (0, 1, 1)):
+    """Surface evidence of segments 0 and 1 of view 0 and the merged mask 2 of view 1 (their
+    sample points, in that order, and nothing else), the views, the merged flags and the labels."""
+    none = np.zeros(0, np.int64)
+    surface = SurfaceEvidence(np.array(samples), points.astype(np.float32), np.zeros((3, 2), np.int64),
+                              np.zeros((3, 2), np.int64), none, none, none)
+    return surface, np.array([0, 0, 1]), np.array([False, False, True]), np.array(labels)
+
+
 def test_a_merged_mask_counts_the_other_views_surface_not_their_samples():
     """A large segment's fixed number of sample points lie far apart, a small one's close together:
     counted on samples, the merged mask's points find the small segment's surface more often and
@@ -415,12 +424,8 @@ def test_a_merged_mask_counts_the_other_views_surface_not_their_samples():
     # View 1: a mask over both, 60 of its points on P and 40 on Q.
     m_points = np.concatenate([np.c_[rng.uniform(-49, -1, 60), rng.uniform(0, 48, 60), np.zeros(60)],
                                np.c_[rng.uniform(1, 9, (40, 2)), np.zeros(40)]])
-    samples = np.array([30, 100, 100])
-    points = np.concatenate([p_samples, q_samples, m_points]).astype(np.float32)
-    none = np.zeros(0, np.int64)
-    surface = SurfaceEvidence(samples, points, np.zeros((3, 2), np.int64), np.zeros((3, 2), np.int64), none, none,
-                              none)
-    view, merged, labels = np.array([0, 0, 1]), np.array([False, False, True]), np.array([0, 1, 2])
+    surface, view, merged, labels = _two_segments_and_a_merged_mask(
+        np.concatenate([p_samples, q_samples, m_points]), [30, 100, 100], labels=(0, 1, 2))
     # Only points the other view sees vote, each for itself: a depth tolerance no point meets leaves
     # the vote to the reach (see the next tests for what the tolerance does).
     config = ShadowCorrConfig(method="fused", fusion_merge_reach=3.0, projection_depth_tolerance=0.01)
@@ -439,12 +444,8 @@ def test_a_merged_mask_joins_the_rock_under_most_of_it_where_other_views_see_lit
     q_seen = np.c_[np.zeros(200), rng.uniform(60, 100, 200), rng.uniform(0, 50, 200)]
     on_p = np.c_[np.zeros(70), rng.uniform(0, 40, 70), rng.uniform(28, 38, 70)]
     on_q = q_seen[:30] + [0.5, 0.0, 0.0]
-    points = np.concatenate([p_seen, q_seen, on_p, on_q]).astype(np.float32)
-    samples = np.array([200, 200, 100])
-    none = np.zeros(0, np.int64)
-    surface = SurfaceEvidence(samples, points, np.zeros((3, 2), np.int64), np.zeros((3, 2), np.int64), none, none,
-                              none)
-    view, merged, labels = np.array([0, 0, 1]), np.array([False, False, True]), np.array([0, 1, 1])
+    surface, view, merged, labels = _two_segments_and_a_merged_mask(np.concatenate([p_seen, q_seen, on_p, on_q]),
+                                                                    [200, 200, 100])
     config = ShadowCorrConfig(method="fused")
     assert join_nearest_surface(labels, surface, view, merged, config).tolist() == [0, 1, 0]
     # Reaching only as far as the depth tolerance, P's points below the strip still follow the
@@ -468,12 +469,8 @@ def test_a_merged_masks_points_no_other_view_sees_follow_the_masks_nearest_seen_
     q_top = np.c_[rng.uniform(20, 40, 200), rng.uniform(0, 20, 200), np.zeros(200)]
     on_p = np.c_[np.linspace(-30, 0, 60), rng.uniform(0, 20, 60), np.zeros(60)]
     on_q = np.c_[rng.uniform(20, 40, 40), rng.uniform(0, 20, 40), np.zeros(40)]
-    points = np.concatenate([p_strip, q_side, q_top, on_p, on_q]).astype(np.float32)
-    samples = np.array([200, 400, 100])
-    none = np.zeros(0, np.int64)
-    surface = SurfaceEvidence(samples, points, np.zeros((3, 2), np.int64), np.zeros((3, 2), np.int64), none, none,
-                              none)
-    view, merged, labels = np.array([0, 0, 1]), np.array([False, False, True]), np.array([0, 1, 1])
+    surface, view, merged, labels = _two_segments_and_a_merged_mask(
+        np.concatenate([p_strip, q_side, q_top, on_p, on_q]), [200, 400, 100])
     config = ShadowCorrConfig(method="fused")
     assert join_nearest_surface(labels, surface, view, merged, config).tolist() == [0, 1, 0]
     blind = config.with_options(projection_depth_tolerance=0.01)  # each point votes for its nearest surface
