@@ -310,19 +310,13 @@ def _object_image(view: Any, ground_truth: str) -> np.ndarray:
     return lookup[np.searchsorted(ids, view.mask)]
 
 
-def _majority(first: np.ndarray, second: np.ndarray) -> dict[int, int]:
-    """Per value of ``first``: the value of ``second`` on most of its pixels (ties: the lower)."""
-    pairs, pixels = np.unique(np.stack([first, second]).astype(np.int64), axis=1, return_counts=True)
-    order = np.lexsort((pairs[1], -pixels, pairs[0]))
-    top = order[np.r_[True, pairs[0, order][1:] != pairs[0, order][:-1]]] if order.size else order
-    return dict(zip(pairs[0, top].tolist(), pairs[1, top].tolist()))
-
-
 def _merged_masks(before: Any, after: Any, final: Any) -> dict[str, dict[int, set[int]]]:
     """Per view: the masks of ``final`` that descend from a mask ``merge_touching`` fused
     (``before`` -> ``after``), each with the objects it was drawn over.  A later split or
     erosion keeps most of a mask's pixels under its parent's id, so each final mask descends
     from the fused mask under most of its pixels."""
+    from shadowcorr.stages import majority_vote
+
     out: dict[str, dict[int, set[int]]] = {}
     for old, new, last in zip(before.views, after.views, final.views):
         objects = _object_image(old, before.ground_truth)
@@ -332,8 +326,9 @@ def _merged_masks(before: Any, after: Any, final: Any) -> dict[str, dict[int, se
         for mask_id, obj in np.unique(np.stack([new.mask[under], objects[under]]).astype(np.int64), axis=1).T:
             drawn.setdefault(int(mask_id), set()).add(int(obj))
         both = (last.mask > 0) & (new.mask > 0)
-        parent = _majority(last.mask[both], new.mask[both]) if both.any() else {}
-        found = {k: drawn[p] for k, p in parent.items() if len(drawn.get(p, ())) > 1}
+        parent = majority_vote(new.mask[both].astype(np.int64), last.mask[both].astype(np.int64),
+                               int(last.mask.max()) + 1)[0]
+        found = {k: drawn[p] for k, p in enumerate(parent.tolist()) if len(drawn.get(p, ())) > 1}
         if found:
             out[last.name] = found
     return out
@@ -383,20 +378,25 @@ def segment_truth(bundle: Any, result: Any, clean: Any = None, merged: dict | No
     if clean is None or not merged:
         return truth
     from shadowcorr import ShadowCorrConfig
-    from shadowcorr.stages import find_blobs
+    from shadowcorr.stages import find_blobs, majority_vote
 
     config = config or ShadowCorrConfig()
     exact = {v.name: v for v in clean.views}
-    for name, masks in merged.items():
-        blobs = find_blobs(views[name].mask, config.split_components, config.min_blob_pixels)
-        objects = _object_image(exact[name], clean.ground_truth)
-        on = (blobs.labels >= 0) & (objects >= 0)
-        owner = _majority(blobs.labels[on], objects[on]) if on.any() else {}
-        blob_of = {(int(i), int(c)): b for b, (i, c) in enumerate(zip(blobs.instance, blobs.component))}
-        for k, seg in enumerate(result.segments):
-            b = blob_of.get((seg.instance, seg.component)) if seg.view == name and seg.instance in masks else None
-            if b is not None and truth[k] >= 0 and owner.get(b) in masks[seg.instance]:
-                truth[k] = owner[b]
+    owners: dict[str, tuple[np.ndarray, dict[tuple[int, int], int]]] = {}  # per view: blob -> object, blob index
+    for k, seg in enumerate(result.segments):
+        masks = merged.get(seg.view, {})
+        if seg.instance not in masks or truth[k] < 0:
+            continue
+        if seg.view not in owners:
+            blobs = find_blobs(views[seg.view].mask, config.split_components, config.min_blob_pixels)
+            objects = _object_image(exact[seg.view], clean.ground_truth)
+            on = (blobs.labels >= 0) & (objects >= 0)
+            owners[seg.view] = (majority_vote(objects[on], blobs.labels[on].astype(np.int64), blobs.lengths.size)[0],
+                                {(int(i), int(c)): b for b, (i, c) in enumerate(zip(blobs.instance, blobs.component))})
+        owner, blob_of = owners[seg.view]
+        b = blob_of.get((seg.instance, seg.component))
+        if b is not None and int(owner[b]) in masks[seg.instance]:
+            truth[k] = owner[b]
     return truth
 
 
