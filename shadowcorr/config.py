@@ -182,6 +182,10 @@ class ShadowCorrConfig(BaseModel):
     fusion_seam_unsure: float = Field(1.0, ge=0, description="a seam that is not smooth but whose median step lies within "
                                       "this many standard errors of fusion_seam_tolerance decides nothing: its view "
                                       "neither joins nor parts the pair (0: such pairs are two masks)")
+    fusion_seam_apart: float = Field(3.0, ge=0, description="a seam of at least fusion_seam_min_pixels whose median "
+                                     "step exceeds fusion_seam_tolerance by more than this many standard errors "
+                                     "shows two surfaces: its masks are not made one id because they co-land in other "
+                                     "views, where a merged mask may draw two rocks as one (0: no such veto)")
     fusion_merge_share: float = Field(0.25, ge=0, le=0.5, description="a segment whose landings in another view "
                                       "split, at least this share on each, over two segments that both land mostly "
                                       "on it and that a third view sees apart, is read as a merged mask: landings on "

@@ -11,7 +11,7 @@ from pydantic import ValidationError
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle
 from shadowcorr.stages import (
-    SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, join_nearest_surface, link_components,
+    Seams, SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, join_nearest_surface, link_components,
     merged_mask_segments, sample_segment_points, segment_confidence, split_mask_ids, surface_evidence, without_landings_on,
 )
 
@@ -198,6 +198,28 @@ def test_halves_that_co_land_in_two_views_count_as_one_mask_and_a_merge_in_one_v
             (3, 0, n), (3, 2, n), (4, 1, n), (4, 2, n)]
     graph = _graph(view, instance, on_mask, hits)
     assert split_mask_ids(graph.surface, view, instance, config)[0].tolist() == instance.tolist()
+
+
+def test_masks_that_co_land_but_meet_across_a_depth_step_keep_their_ids():
+    """Rocks P and Q touch; views 1 and 2 each drew one mask over both, so P's and Q's masks in
+    view 0 co-land in two views, as the halves of one cut rock would.  Their seam in view 0 is
+    an occlusion step (an apart pair): they keep their ids, and without the veto they would not."""
+    n = 100
+    config = ShadowCorrConfig(method="fused")
+    view, instance = np.array([0, 0, 1, 2]), np.array([1, 2, 1, 1])
+    on_mask = [[0, n, n], [0, n, n], [2 * n, 0, 2 * n], [2 * n, 2 * n, 0]]
+    hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 3, n), (2, 0, n), (2, 1, n), (2, 3, 2 * n),
+            (3, 0, n), (3, 1, n), (3, 2, 2 * n)]
+    surface = _graph(view, instance, on_mask, hits).surface
+    none = np.zeros(0, dtype=np.int64)
+    stepped = replace(surface, seams=Seams(none, none, none, np.zeros(0), np.zeros(0), none, none,
+                                           np.array([0]), np.array([1])))
+    ids, loose = split_mask_ids(stepped, view, instance, config)
+    assert ids.tolist() == [1, 2, 1, 1] and loose.tolist() == [1, 2, 1, 1]
+    assert split_mask_ids(surface, view, instance, config)[0].tolist() == [1, 1, 1, 1]
+    # The step vetoes only its own pair: another pair of the view still co-lands.
+    other = replace(stepped, seams=replace(stepped.seams, apart_first=np.array([2]), apart_second=np.array([3])))
+    assert split_mask_ids(other, view, instance, config)[0].tolist() == [1, 1, 1, 1]
 
 
 def _merge_scene(n: int = 100):

@@ -50,7 +50,13 @@ def test_an_occlusion_contour_is_no_seam():
     depth = _tilted_plane()
     labels = _two_halves(2)
     depth[labels == 1] *= 1.08
-    assert _view_seams(_image(labels), depth, ShadowCorrConfig()).first.size == 0
+    seams = _view_seams(_image(labels), depth, ShadowCorrConfig())
+    assert seams.first.size == 0 and seams.unsure_first.size == 0
+    # A long seam with a step far beyond the tolerance shows two surfaces: the pair is apart.
+    assert seams.apart_first.tolist() == [0] and seams.apart_second.tolist() == [1]
+    assert _view_seams(_image(labels), depth, ShadowCorrConfig(fusion_seam_apart=0)).apart_first.size == 0
+    # A cut across one surface is not apart.
+    assert _view_seams(_image(labels), _tilted_plane(), ShadowCorrConfig()).apart_first.size == 0
 
 
 def test_a_gap_wider_than_fusion_seam_gap_is_no_seam():
@@ -194,3 +200,4 @@ def test_a_seam_too_short_to_decide_is_unsure_and_an_occlusion_is_not():
     depth[labels == 1] *= 1.08
     occluded = _view_seams(_image(labels), depth, config)
     assert occluded.first.size == 0 and occluded.unsure_first.size == 0
+    assert occluded.apart_first.size == 0  # 12 samples: too short to show two surfaces either

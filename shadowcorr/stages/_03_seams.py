@@ -49,6 +49,12 @@ small piece a split leaves of a small rock: its seam with the rest has a dozen s
 few for the test above in clean depth and, under noise, for any test; read as two masks, the
 cannot-link of its view kept it alone although the other views saw it with the rest.
 
+A seam of at least ``fusion_seam_min_pixels`` samples whose median step lies more than
+``fusion_seam_apart`` standard errors beyond the tolerance shows two surfaces: an occlusion
+contour or a crease.  Such a pair is *apart*.  It vetoes the one join that needs other views:
+two masks that co-land there (``split_mask_ids``) are two rocks that another view's segmenter
+merged, not one rock cut in two, when their own view shows the depth step between them.
+
 What the step cannot tell apart: two rocks that touch along a contour with continuous depth
 (side by side at one distance, the contact facing the camera).  Such a pair is a
 *candidate* only: the grouping reads it as one mask id for its per-view constraints (as the
@@ -98,6 +104,10 @@ class Seams:
     # for smooth, yet its step is not an occlusion's either (see ``fusion_seam_unsure``).
     unsure_first: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     unsure_second: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    # Pairs whose seam shows two surfaces (``first < second``): long enough, and a step surely
+    # beyond the tolerance (``fusion_seam_apart`` standard errors): an occlusion or a crease.
+    apart_first: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    apart_second: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @classmethod
     def empty(cls) -> "Seams":
@@ -118,11 +128,12 @@ def smooth_seams(bundle: SceneBundle, segments: Segments, config: ShadowCorrConf
 
     found = thread_map(view_seams, range(len(bundle.views)), config.num_threads)
     return Seams(*(np.concatenate([getattr(f, name) for f in found]) for name in
-                   ("first", "second", "samples", "step", "uncertainty", "unsure_first", "unsure_second")))
+                   ("first", "second", "samples", "step", "uncertainty", "unsure_first", "unsure_second",
+                    "apart_first", "apart_second")))
 
 
 def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig, noise: float | None = None) -> Seams:
-    """One view's smooth and unsure seams; ``noise`` is the view's relative depth noise (measured here when None)."""
+    """One view's smooth, unsure and apart seams; ``noise`` is the view's relative depth noise (measured here when None)."""
     labels = np.asarray(image.window)
     if labels.size == 0:
         return Seams.empty()
@@ -188,9 +199,13 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     unsure = np.zeros_like(smooth)
     if config.fusion_seam_unsure > 0:
         unsure = ~smooth & (np.abs(median_step) <= config.fusion_seam_tolerance + config.fusion_seam_unsure * uncertainty)
-    k, u = key[starts][smooth], key[starts][unsure]
+    apart = np.zeros_like(smooth)
+    if config.fusion_seam_apart > 0:
+        apart = (counts >= config.fusion_seam_min_pixels) & (
+            np.abs(median_step) > config.fusion_seam_tolerance + config.fusion_seam_apart * uncertainty)
+    k, u, t = key[starts][smooth], key[starts][unsure], key[starts][apart & ~unsure]
     return Seams(k // span, k % span, counts[smooth].astype(np.int64), median_step[smooth], uncertainty[smooth],
-                 u // span, u % span)
+                 u // span, u % span, t // span, t % span)
 
 
 def _neighbours(labels: np.ndarray, dy: int, dx: int, gap: int

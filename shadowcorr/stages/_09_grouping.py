@@ -439,7 +439,11 @@ def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndar
     points, in noisy depth, pass for visible just behind its neighbour).  When a and b co-land in at least
     ``fusion_split_views`` views and in at least ``fusion_split_share`` of the views where
     both land on a mask, b's id is taken to be a's for the constraints (blobs of one mask):
-    the surface and volumetric evidence still decide whether they join.
+    the surface and volumetric evidence still decide whether they join.  Not so for a pair
+    whose own seam shows two surfaces (``surface.seams.apart_first`` / ``apart_second``, a
+    depth step ``fusion_seam_apart`` standard errors beyond the tolerance): those co-land
+    because other views merged two touching rocks, and two merged views would otherwise chain
+    the rocks in every view.
 
     Neighbours of one view whose shared border is one smooth surface
     (``surface.seams``, :func:`shadowcorr.stages.smooth_seams`) are taken as one mask too.
@@ -455,12 +459,16 @@ def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndar
     if view.size == 0:
         return instance.copy(), instance.copy()
     p, q = _colanding_pairs(surface, view, instance, config)
+    seams = surface.seams
+    if seams.apart_first.size and p.size:
+        # A merged mask in the other views lands two touching rocks together, as if one rock
+        # were cut in two here; the depth step on their seam in their own view says they are two.
+        p, q = _without_pairs(p, q, seams.apart_first, seams.apart_second, instance.size)
     # Neighbours of one view meeting on one smooth surface (stage 03 seams) count as well,
     # unless another view sees them apart: the seam needs no other view, which a rock seen
     # once, or seen elsewhere under a merged mask, lacks; in noisy depth two rocks can pass
     # for one surface, and the views that see them apart say so.  Likewise for the unsure ones.
     mostly = None
-    seams = surface.seams
     if seams.first.size or seams.unsure_first.size:
         mostly = _mostly_on(surface, view, config)
     if seams.first.size:
@@ -471,6 +479,16 @@ def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndar
         return ids, ids
     together = ~_seen_apart(mostly, instance, seams.unsure_first, seams.unsure_second)
     return ids, _joined_ids(instance, np.r_[p, seams.unsure_first[together]], np.r_[q, seams.unsure_second[together]])
+
+
+def _without_pairs(p: np.ndarray, q: np.ndarray, first: np.ndarray, second: np.ndarray, num_segments: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs (``p``, ``q``) that are not among the pairs (``first``, ``second``), either order."""
+    def keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.minimum(a, b) * num_segments + np.maximum(a, b)
+
+    kept = ~np.isin(keys(p, q), keys(first, second))
+    return p[kept], q[kept]
 
 
 def _joined_ids(instance: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
