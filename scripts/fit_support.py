@@ -10,7 +10,8 @@ quality benchmark's 9001) on the quality benchmark's eight synthetic rigs are la
 ``--combined-scenes``: the flag is for data with every error at once, and its wrong segments
 are what the fit needs most).  For every segment with ground truth the features of
 :data:`shadowcorr.stages.SUPPORT_FEATURES` and whether it sits in the wrong place (the
-benchmark's ``wrong_segments``) are recorded.  The model is fitted on two thirds of the scenes
+benchmark's ``wrong_segments`` on its ``segment_truth``, which scores a merged mask's blobs by
+the rock under their own pixels) are recorded.  The model is fitted on two thirds of the scenes
 and checked on the rest (all of them, and the clean, single-error and combined-error runs
 apart): expected calibration error (10 bins), AUROC and the precision / recall of "support
 below the threshold" as a flag for wrong segments.  It is ``--trees`` boosted regression trees
@@ -35,6 +36,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -73,15 +75,21 @@ def _run(job: tuple[str, str, int, str | None]) -> tuple[str, np.ndarray, np.nda
 
     bench = _BENCH
     key, path, index, condition = job
-    bundle = load_bundle(path)
+    clean = bundle = load_bundle(path)
+    merged: dict = {}
     if condition is not None:
-        bundle = bench.perturb(bundle, condition, bench.perturbation_seed(f"fit/{path}", condition, 0))
+        bundle = bench.perturb(bundle, condition, bench.perturbation_seed(f"fit/{path}", condition, 0), merged)
     config = ShadowCorrConfig()
     scene = prepare(bundle, config)
     (embeddings,) = embed(_MODEL, [scene])
     groups = group_by_evidence(scene, embeddings, config)
     features = support_features(groups, config)
-    truth = scene.segment_truth  # the bundle's ground truth per segment, read here only to score
+    # The truth the quality benchmark scores with (read here only to score): each mask's, but a
+    # merged mask's blobs by the rock under their own pixels.
+    cut = SimpleNamespace(segments=[SimpleNamespace(view=scene.view_names[v], instance=i, component=c) for v, i, c in
+                                    zip(scene.segment_view.tolist(), scene.segment_instance.tolist(),
+                                        scene.segment_component.tolist())])
+    truth = bench.segment_truth(bundle, cut, clean, merged, config)
     wrong = bench.wrong_segments(truth, groups.labels)
     scored = truth >= 0
     return key, features[scored], wrong[scored]
