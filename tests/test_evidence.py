@@ -167,14 +167,21 @@ def test_a_split_mask_is_joined_when_the_evidence_agrees():
     assert len(set(joined.tolist())) == 1
 
 
-def test_halves_that_co_land_in_two_views_count_as_one_mask_and_a_merge_in_one_view_does_not():
-    n = 100
-    config = ShadowCorrConfig(method="fused")
-    # Split: segments 0 and 1 (view 0, ids 1 and 2) both land on segment 2 (view 1) and 3 (view 2).
+def _co_landing_pair(n: int = 100):
+    """Segments 0 and 1 (view 0, ids 1 and 2) both land on segment 2 (view 1) and 3 (view 2), which
+    land back on each: the halves of one cut rock, or two rocks merged in views 1 and 2."""
     view, instance = np.array([0, 0, 1, 2]), np.array([1, 2, 1, 1])
     on_mask = [[0, n, n], [0, n, n], [2 * n, 0, 2 * n], [2 * n, 2 * n, 0]]
     hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 3, n), (2, 0, n), (2, 1, n), (2, 3, 2 * n),
             (3, 0, n), (3, 1, n), (3, 2, 2 * n)]
+    return view, instance, on_mask, hits
+
+
+def test_halves_that_co_land_in_two_views_count_as_one_mask_and_a_merge_in_one_view_does_not():
+    n = 100
+    config = ShadowCorrConfig(method="fused")
+    # Split: the co-landing pair, seen whole in views 1 and 2.
+    view, instance, on_mask, hits = _co_landing_pair(n)
     graph = _graph(view, instance, on_mask, hits)
     ids, loose = split_mask_ids(graph.surface, view, instance, config)
     assert ids[0] == ids[1] and ids.tolist()[2:] == [1, 1] and loose.tolist() == ids.tolist()
@@ -204,12 +211,8 @@ def test_masks_that_co_land_but_meet_across_a_depth_step_keep_their_ids():
     """Rocks P and Q touch; views 1 and 2 each drew one mask over both, so P's and Q's masks in
     view 0 co-land in two views, as the halves of one cut rock would.  Their seam in view 0 is
     an occlusion step (an apart pair): they keep their ids, and without the veto they would not."""
-    n = 100
     config = ShadowCorrConfig(method="fused")
-    view, instance = np.array([0, 0, 1, 2]), np.array([1, 2, 1, 1])
-    on_mask = [[0, n, n], [0, n, n], [2 * n, 0, 2 * n], [2 * n, 2 * n, 0]]
-    hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 3, n), (2, 0, n), (2, 1, n), (2, 3, 2 * n),
-            (3, 0, n), (3, 1, n), (3, 2, 2 * n)]
+    view, instance, on_mask, hits = _co_landing_pair()
     surface = _graph(view, instance, on_mask, hits).surface
     none = np.zeros(0, dtype=np.int64)
     stepped = replace(surface, seams=Seams(none, none, none, np.zeros(0), np.zeros(0), none, none,
