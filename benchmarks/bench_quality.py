@@ -498,6 +498,8 @@ def run_task(task: Task) -> Task:
                 task.records.append({**base, "error": f"{type(err).__name__}: {err}"})
                 continue
             wall, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+            # The library's metrics give the voxel ARI; the segment metrics are taken again on the
+            # benchmark's truth, which scores a merged mask's blobs by the rock under them.
             truth = segment_truth(bundle, result, clean, merged, method_config(method))
             scores = {**(result.metrics or {}), **segment_metrics(truth, np.array(result.labels, dtype=np.int64))}
             task.records.append({

@@ -715,18 +715,20 @@ def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.
     two touching rocks the nearest surface can be the other rock's side, which the mask's view
     does not see, while the mask's own nearest seen points lie on its own rock.  Measured on the
     quality benchmark (30 scenes per cell, 20 seeds of the real scene, each mask's truth),
-    against each point within ``fusion_merge_reach`` voting for its nearest surface: ``syn:4v-720p`` under 5 % merges and 2 px erosion together 99.33 -> 99.52,
+    against each point within ``fusion_merge_reach`` voting for its nearest surface:
+    ``syn:4v-720p`` under 5 % merges and 2 px erosion together 99.33 -> 99.52,
     ``real:0246+merge5%`` 99.32 -> 99.40, the mean over the 13 rigs under ``mild`` errors
-    99.13 -> 99.15, ``harsh`` 95.53 -> 95.54, the ``field`` mean and every clean row unchanged; the
-    rows that lose lose one mask each on an even vote (``real:0246+harsh`` -0.07: 49 % of the
-    points where it was 51 %; ``syn:4v+merge5%`` -0.01: a mask half over each rock).
+    99.13 -> 99.15, ``harsh`` 95.53 -> 95.54, the ``field`` mean and every clean row unchanged;
+    the rows that lose lose one mask each on an even vote (``real:0246+harsh`` -0.07: 49 % of
+    the points where the other rule gave 51 %; ``syn:4v+merge5%`` -0.01: a mask half over each
+    rock).
 
     With fewer seen points than that, every point within ``fusion_merge_reach`` votes for its
     nearest surface and the majority of them decides.  The reach is wider than the depth
     tolerance: the part of the mask that no other view sees lies nearer to its own rock's
-    surface elsewhere than to the other rock's more often than not (with the old all-points vote,
-    on the quality benchmark's rows, 10 scenes: against 3 units, 15 raised the mean over the 13
-    rigs under ``mild`` errors from 98.96 to 99.08).
+    surface elsewhere than to the other rock's more often than not (with every point voting
+    this way, on the quality benchmark's rows, 10 scenes: against 3 units, 15 raised the mean
+    over the 13 rigs under ``mild`` errors from 98.96 to 99.08).
 
     The other views' surface points are the segments' cleaned shells (``shell_points``, sorted by
     segment, ``shell_count`` per segment: one point per ``downsample_size`` cell of surface), so
