@@ -15,7 +15,7 @@ from shadowcorr.stages import (
     merged_mask_segments, sample_segment_points, segment_confidence, split_mask_ids, surface_evidence, without_landings_on,
 )
 
-from shadowcorr.stages._09_grouping import _group_links, _Groups, _initial_heap
+from shadowcorr.stages._09_grouping import _group_links, _Groups, _initial_heap, _merged_masks
 
 from .scenes import sphere_scene
 from .test_engine import FIELD_CENTRES, FIELD_RADII, same_partition
@@ -253,6 +253,14 @@ def test_a_merged_mask_is_found_where_a_third_view_sees_its_objects_apart():
                         hit_target=surface.hit_target[seen], hit_count=surface.hit_count[seen])
     two_views.on_mask[:, 2] = 0
     assert not merged_mask_segments(two_views, view, instance, config).any()
+    # Unless view 0 itself tells them apart: their seam there is a depth step (one in front of the other).
+    none = np.zeros(0, dtype=np.int64)
+    stepped = replace(two_views, seams=Seams(none, none, none, np.zeros(0), np.zeros(0), none, none,
+                                             np.array([1]), np.array([0])))
+    assert merged_mask_segments(stepped, view, instance, config).tolist() == [False, False, True, False, False]
+    # Which masks only a depth step told apart (their rock is then read along the rays: join_nearest_surface).
+    assert _merged_masks(stepped, view, instance, config)[1].tolist() == [False, False, True, False, False]
+    assert not _merged_masks(surface, view, instance, config)[1].any()
 
 
 def test_merge_share_is_validated():
@@ -500,6 +508,42 @@ def test_a_merged_masks_points_no_other_view_sees_follow_the_masks_nearest_seen_
     assert join_nearest_surface(labels, surface, view, merged, config).tolist() == [0, 1, 0]
     blind = config.with_options(projection_depth_tolerance=0.01)  # each point votes for its nearest surface
     assert join_nearest_surface(labels, surface, view, merged, blind).tolist() == [0, 1, 1]
+
+
+def test_a_merged_mask_only_a_depth_step_told_joins_the_surface_drawn_in_front_along_its_rays():
+    """View 1 (camera at the origin, looking along z) drew one mask over rocks P and Q at 500 cm.  View
+    0 sees P's face there (x < -20 cm, segment 0); view 2 sees only Q's far side, 30 cm behind the
+    mask's surface (x > -20, segment 1): 30 of the mask's points are on P and 70 on Q.  Both land
+    mostly on the mask.  The seen points (all on P) carry the vote for a mask that a third view told
+    apart; for one that only a depth step told (``drawn``), Q is drawn under most of its rays.
+    Segment 3 of view 2, also covered by the mask, lies 100 cm in front of its surface, where it
+    would hide the mask: it is drawn nowhere."""
+    grid = np.stack(np.meshgrid(np.arange(-50.0, 50.0, 2.0), np.arange(-50.0, 50.0, 2.0)), -1).reshape(-1, 2)
+    p_face = np.c_[grid[grid[:, 0] < -20], np.full((grid[:, 0] < -20).sum(), 500.0)]
+    q_back = np.c_[grid[grid[:, 0] >= -20], np.full((grid[:, 0] >= -20).sum(), 530.0)]
+    occluder = np.c_[grid, np.full(len(grid), 400.0)]
+    mask_points = np.c_[np.linspace(-49, 49, 100), np.tile(np.linspace(-45, 45, 10), 10), np.full(100, 500.0)]
+    shells = [p_face, q_back, mask_points, occluder]
+    view, instance = np.array([0, 2, 1, 2]), np.array([1, 1, 1, 2])
+    on_mask = np.zeros((4, 3), dtype=np.int64)
+    on_mask[[0, 1, 3], 1] = 100
+    hit_source, hit_target = np.array([0, 1, 3]), np.array([2, 2, 2])  # each lands wholly on the mask
+    samples = np.array([100, 100, 100, 100])
+    points = np.concatenate([x[np.linspace(0, len(x) - 1, 100).astype(int)] for x in shells]).astype(np.float32)
+    surface = SurfaceEvidence(samples, points, on_mask, on_mask, hit_source, hit_target, np.full(3, 100))
+    config = ShadowCorrConfig(method="fused")
+    labels, merged = np.array([0, 1, 0, 3]), np.array([False, False, True, False])
+    shell_points, shell_count = np.concatenate(shells).astype(np.float32), np.array([len(x) for x in shells])
+    cameras = np.zeros((3, 3))
+    joined = join_nearest_surface(labels, surface, view, merged, config, shell_points, shell_count, cameras, merged)
+    assert joined.tolist() == [0, 1, 1, 3]
+    assert join_nearest_surface(labels, surface, view, merged, config, shell_points, shell_count, cameras,
+                                np.zeros(4, bool)).tolist() == [0, 1, 0, 3]
+    assert join_nearest_surface(labels, surface, view, merged, config, shell_points, shell_count).tolist() == [0, 1, 0, 3]
+    # Just behind the mask's surface instead, the third surface is the first one along Q's rays.
+    shell_points[shell_count[:3].sum():, 2] = 510.0
+    assert join_nearest_surface(labels, surface, view, merged, config, shell_points, shell_count,
+                                cameras, merged).tolist() == [0, 1, 3, 3]
 
 
 @pytest.mark.parametrize("method", GRAPH_METHODS)
