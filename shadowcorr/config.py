@@ -188,7 +188,8 @@ class ShadowCorrConfig(BaseModel):
                                      "views, where a merged mask may draw two rocks as one (0: no such veto)")
     fusion_merge_share: float = Field(0.25, ge=0, le=0.5, description="a segment whose landings in another view "
                                       "split, at least this share on each, over two segments that both land mostly "
-                                      "on it and that a third view sees apart, is read as a merged mask: landings on "
+                                      "on it and that a third view sees apart (or that meet across a depth step in "
+                                      "their own view), is read as a merged mask: landings on "
                                       "it are no evidence (see shadowcorr.stages.merged_mask_segments; 0: never)")
     fusion_merge_reach: float = Field(15.0, gt=0, description="a merged mask of which other views see too few "
                                       "points joins the group whose surface lies nearest to most of its points, "
