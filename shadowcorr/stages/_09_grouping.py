@@ -716,6 +716,8 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
         labels = link_components(scene.surface, scene.segment_view, config)
     else:
         cameras = None if scene.view_poses is None else scene.view_poses[:, :3, 3] * scene.unit_scale
+        # The landings as measured (scene.surface, not the graph's): what a merged mask covers
+        # is read from the landings on it, which the graph leaves out.
         labels = join_nearest_surface(agglomerate(graph, config), scene.surface, scene.segment_view, merged, config,
                                       scene.shell_points, scene.shell_count, cameras, step_only)
     return EvidenceGroups(labels[:s], graph, merged)
@@ -788,7 +790,8 @@ def join_nearest_surface(labels: np.ndarray, surface: SurfaceEvidence, view: np.
     reference_owner = np.repeat(np.arange(view.size), count)
     reference_view = np.where(segments[reference_owner], -1, view[reference_owner])  # merged masks: no view
     end = np.cumsum(surface.samples)
-    drawn = None if cameras is None or drawn is None or not (drawn & segments).any() else drawn
+    if cameras is None or drawn is None or not (drawn & segments).any():
+        drawn = None
     mostly = None if drawn is None else _mostly_on(surface, view, config)
     out = labels.copy()
     for v in np.unique(view[segments]).tolist():
