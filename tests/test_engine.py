@@ -16,7 +16,7 @@ from shadowcorr.stages import (
     segment_shells, surface_evidence, train_segment_embeddings, voxel_downsample,
 )
 
-from shadowcorr.ops import resolve_threads, segment_chunks, thread_map, unique_keys
+from shadowcorr.ops import argsort_keys, resolve_threads, segment_chunks, sort_keys, thread_map, unique_keys
 
 from .paths import REFERENCE_CHECKPOINT as REFERENCE
 from .paths import SAMPLE_DIR as SAMPLE
@@ -226,6 +226,32 @@ def test_unique_keys_equal_numpys_unique_by_counting_and_by_sorting(high):
             assert a.dtype == np.int64
     with pytest.raises(ValueError, match="not both"):
         unique_keys(keys, return_inverse=True, return_counts=True)
+
+
+@pytest.mark.parametrize("case", ["random narrow", "random wide", "negative", "runs", "too wide", "many",
+                                  "ties", "empty", "one"])
+def test_sort_keys_and_argsort_keys_equal_numpys_stable_sort_on_every_path(case, monkeypatch):
+    import shadowcorr.ops._sort_keys as sort_mod
+
+    rng = np.random.default_rng(len(case))
+    keys = {
+        "random narrow": rng.integers(0, 1 << 20, 20_000),  # 16-bit digits: two passes
+        "random wide": rng.integers(0, 1 << 47, 20_000),  # three passes
+        "negative": rng.integers(-(1 << 30), 1 << 30, 20_000),
+        "runs": np.concatenate([np.sort(rng.integers(0, 1 << 40, 5_000)) for _ in range(4)]),  # merged by timsort
+        "too wide": rng.integers(-(1 << 62), 1 << 62, 20_000),  # the default sort
+        "many": rng.integers(0, 1 << 30, 20_000),  # above the limit set below: the default sort
+        "ties": rng.integers(0, 50, 20_000) << 30,  # stable order of equal keys
+        "empty": np.zeros(0, np.int64),
+        "one": np.array([7]),
+    }[case].astype(np.int64)
+    if case == "many":
+        monkeypatch.setattr(sort_mod, "_RADIX_MAX_KEYS", 10_000)
+    expected_passes = {"random narrow": 2, "random wide": 3, "negative": 2, "runs": 0, "too wide": None,
+                       "many": None, "ties": 3, "empty": None, "one": None}[case]
+    assert sort_mod._radix_passes(keys) == expected_passes
+    np.testing.assert_array_equal(sort_keys(keys), np.sort(keys))
+    np.testing.assert_array_equal(argsort_keys(keys), np.argsort(keys, kind="stable"))
 
 
 def test_shadows_and_outliers_in_small_chunks_equal_one_pass(monkeypatch):

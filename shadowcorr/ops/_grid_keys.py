@@ -6,6 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ._sort_keys import argsort_keys, sort_keys
+
 
 def pack_cell_keys(group: np.ndarray, cells: np.ndarray | Sequence[np.ndarray]) -> tuple[np.ndarray, callable]:
     """Pack ``(group, cells[:, 0], cells[:, 1], cells[:, 2])`` into one int64 per row.
@@ -58,10 +60,9 @@ def unique_keys(keys: np.ndarray, return_inverse: bool = False, return_counts: b
     NumPy >= 2.3 answers ``np.unique`` on integers with a hash table, which is many
     times slower than one sort when most of a million keys are distinct.  Non-negative keys
     below ``_DENSE_KEYS_PER_ROW`` times their number (pairs of a few hundred segments) are
-    counted in a table instead, in linear time.  For the inverse, non-negative keys with
-    room to spare carry their row number in their low bits, so one value sort (SIMD)
-    replaces an argsort: about half the time for 300k keys.  ``return_inverse`` and
-    ``return_counts`` are not offered together (no caller needs both).
+    counted in a table instead, in linear time; others are sorted by :func:`sort_keys` (or
+    ordered by :func:`argsort_keys` for the inverse), which use what the keys' order and span
+    allow.  ``return_inverse`` and ``return_counts`` are not offered together (no caller needs both).
     """
     if return_inverse and return_counts:
         raise ValueError("unique_keys returns the inverse or the counts, not both")
@@ -77,17 +78,11 @@ def unique_keys(keys: np.ndarray, return_inverse: bool = False, return_counts: b
             return unique, rank[keys]
         return unique
     if not return_inverse:
-        s = np.sort(keys)
+        s = sort_keys(keys)
         first = np.flatnonzero(np.r_[True, s[1:] != s[:-1]]) if s.size else np.zeros(0, dtype=np.int64)
         return (s[first], np.diff(np.r_[first, s.size])) if return_counts else s[first]
-    row_bits = max(int(n - 1).bit_length(), 1)
-    if n and low >= 0 and high < 1 << (63 - row_bits):
-        packed = np.sort((keys << row_bits) | np.arange(n, dtype=np.int64))
-        order = packed & ((1 << row_bits) - 1)
-        s = packed >> row_bits
-    else:
-        order = np.argsort(keys)
-        s = keys[order]
+    order = argsort_keys(keys)
+    s = keys[order]
     new = np.r_[True, s[1:] != s[:-1]] if s.size else np.zeros(0, dtype=bool)
     inverse = np.empty(n, dtype=np.int64)
     inverse[order] = np.cumsum(new) - 1
