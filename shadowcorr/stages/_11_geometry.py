@@ -61,7 +61,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
 from ..config import ShadowCorrConfig
-from ..ops import segment_max, segment_min, segment_starts
+from ..ops import argsort_keys, segment_max, segment_min, segment_starts, sort_keys
 from ..poses import world_up
 from ..result import Extent, ObjectSummary, OrientedBox
 from ._04_shells import voxel_downsample
@@ -177,7 +177,7 @@ def _sorted_by_column(gx: np.ndarray, gy: np.ndarray, obj: np.ndarray) -> tuple[
     if float(sx) * sy * (float(obj.max()) + 1.0) >= 2.0 ** 62:
         order = np.lexsort((gy, gx, obj))
         return gx[order], gy[order], obj[order]
-    key = np.sort((obj * sx + (gx - x0)) * sy + (gy - y0))
+    key = sort_keys((obj * sx + (gx - x0)) * sy + (gy - y0))
     obj, rest = np.divmod(key, sx * sy)
     x, y = np.divmod(rest, sy)
     return x + x0, y + y0, obj
@@ -388,7 +388,7 @@ def _largest_components(cell: np.ndarray, owner: np.ndarray, weight: np.ndarray)
     # The graph is built on the cells in key order: every shifted copy of the sorted keys is sorted
     # too, and a search for sorted needles walks the keys in order (several times faster than for
     # needles in arbitrary order).
-    order = np.argsort(key)
+    order = argsort_keys(key)
     idx = idx[order]
     sorted_key = key[order]
     rows, cols = [], []
@@ -449,9 +449,9 @@ def _near_samples(points: np.ndarray, obj: np.ndarray, samples: SolidSamples) ->
     if within.size == 0:
         return near
     sample_key, steps = _linear_keys(samples.object, samples.lattice, 2, low, high)
-    sample_key = np.sort(sample_key)
+    sample_key = sort_keys(sample_key)
     key, _ = _linear_keys(obj[within], q[within], 2, low, high)  # neighbours stay on the grid
-    order = np.argsort(key)  # sorted needles: each search walks the samples' keys in order
+    order = argsort_keys(key)  # sorted needles: each search walks the samples' keys in order
     key = key[order]
     found = np.zeros(within.size, dtype=bool)
     for dx, dy, dz in _NEIGHBOURS:
