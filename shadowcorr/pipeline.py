@@ -18,7 +18,7 @@ from .config import NETWORK_METHODS, SURFACE_METHODS, ShadowCorrConfig
 from .errors import SceneLimitError
 from .nn import Model, load_model
 from .result import ModelInfo, Result
-from .stages._01_poses import pose_warnings, refine_poses
+from .stages._01_poses import pose_warnings, refine_poses, unverified_poses
 from .stages._02_segments import Segments, check_valid_depth, extract_segments
 from .stages._03_surface_evidence import surface_evidence
 from .stages._04_shells import raw_shells, segment_shells
@@ -69,7 +69,8 @@ def prepare(bundle: SceneBundle, config: ShadowCorrConfig | None = None) -> Voxe
         timings["poses"] = _ms_since(t0)
         _check_stage_time(timings, config)
     segments, depth_warnings = cut_segments(bundle, config, timings)  # 02
-    scene = prepare_segments(bundle, segments, config, timings)  # 03-06
+    unverified = None if poses is None else unverified_poses(poses)
+    scene = prepare_segments(bundle, segments, config, timings, unverified)  # 03-06
     scene.poses = poses
     # Segments without depth first: they say the most about whether the result can be trusted.
     scene.warnings[:0] = depth_warnings + list(bundle.warnings) + (pose_warnings(poses) if poses else [])
@@ -97,19 +98,21 @@ def cut_segments(bundle: SceneBundle, config: ShadowCorrConfig, timings: dict[st
 
 
 def prepare_segments(bundle: SceneBundle, segments: Segments, config: ShadowCorrConfig,
-                     timings: dict[str, float] | None = None) -> VoxelScene:
+                     timings: dict[str, float] | None = None, unverified: np.ndarray | None = None) -> VoxelScene:
     """Stages 03-06 on segments already cut: surface evidence, shells, shadows, the voxel scene.
 
     ``bundle`` supplies what the cross-view evidence reads of every view of ``segments``
     (depth, intrinsics, pose), in the same order; the segments may come from elsewhere than its
     masks (the site map adds the stored segments of earlier scans).  ``segments.pixel_segment``
-    is released once the surface evidence has read it.
+    is released once the surface evidence has read it.  ``unverified`` (per view of ``bundle``,
+    :func:`~shadowcorr.stages.unverified_poses`) marks the views whose declared poses pose
+    refinement could not bear out (None: no refinement ran).
     """
     timings = {} if timings is None else timings
     surface = None
     if config.method in SURFACE_METHODS:  # 03
         t0 = time.perf_counter()
-        surface = surface_evidence(bundle, segments, config)
+        surface = surface_evidence(bundle, segments, config, unverified)
         timings["surface_evidence"] = _ms_since(t0)
         _check_stage_time(timings, config)
     segments.pixel_segment = None  # the label images serve the surface evidence only: free them now

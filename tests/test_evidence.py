@@ -591,3 +591,32 @@ def test_an_unsure_seam_neither_joins_nor_parts_the_pair_in_its_view():
     assert groups.constraints(rock, 1) == (0.0, 0.0)  # a piece of one view against two views: neither share
     apart_groups = _Groups(apart, config)
     assert apart_groups.constraints(apart_groups.merge(0, 2), 1) == (0.0, 1.0)
+
+
+def test_a_view_whose_pose_refinement_could_not_verify_lands_within_the_wider_depth_tolerance(field):
+    # View 0 measures every depth 2 % too far, as a pose off along its rays would: beyond
+    # projection_depth_tolerance_rel (1.5 %), within projection_depth_tolerance_unverified_rel (2.5 %)
+    # (the absolute floor lowered to half a unit, a sixth of the default, so the relative ones decide).
+    config = ShadowCorrConfig(method="projection", projection_depth_tolerance=0.5)
+    views = list(field.views)
+    views[0] = replace(views[0], depth=views[0].depth * 1.02)
+    shifted = replace(field, views=views)
+    segments = extract_segments(shifted, config)
+    exact = surface_evidence(field, extract_segments(field, config), config)
+    verified = surface_evidence(shifted, segments, config)
+    unverified = surface_evidence(shifted, segments, config, unverified=np.array([True, False, False, False]))
+    into_0 = segments.view != 0  # the other views' segments, projected into view 0
+    # (Of the points that still land, most lie on the spheres' hidden sides, 2 % behind their fronts.)
+    assert verified.visible[into_0, 0].sum() < 0.5 * exact.visible[into_0, 0].sum()
+    assert unverified.visible[into_0, 0].sum() > exact.visible[into_0, 0].sum()
+    # View 0's own segments, projected into the others, read the wider tolerance too; pairs of views
+    # whose poses both stand verified keep the narrow one.
+    from_0 = segments.view == 0
+    assert unverified.visible[from_0].sum() >= verified.visible[from_0].sum()
+    others = np.ix_(into_0, [1, 2, 3])
+    np.testing.assert_array_equal(unverified.visible[others], verified.visible[others])
+    # The wider tolerance is never narrower than the other one.
+    narrow = config.with_options(projection_depth_tolerance_unverified_rel=0.01)
+    np.testing.assert_array_equal(
+        surface_evidence(shifted, segments, narrow, unverified=np.array([True, False, False, False])).visible,
+        verified.visible)

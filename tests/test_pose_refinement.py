@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from shadowcorr import ShadowCorrConfig, correspond
+from shadowcorr import ShadowCorrConfig, correspond, prepare
 from shadowcorr.bundle import Intrinsics, SceneBundle, View
 from shadowcorr.cli import build_parser, config_from_args
 from shadowcorr.convert import load_ue_scene
 from shadowcorr.evaluation import pose_errors
-from shadowcorr.stages import refine_poses
+from shadowcorr.stages import refine_poses, unverified_poses
 from shadowcorr.stages import pose_warnings as refine_poses_warnings
 from shadowcorr.poses import look_at_pose
 from shadowcorr.result import Result
@@ -168,6 +168,26 @@ def test_a_view_of_another_place_is_reported_and_keeps_its_pose(truth):
     assert [r.status for r in reports[:4]] == ["corrected"] * 4
     after_deg, _ = pose_errors(poses(refined)[:4], poses(truth), common_motion=True)
     assert after_deg.max() < 0.1
+
+
+def test_a_view_whose_declared_pose_stands_unverified_is_read_with_the_wider_depth_tolerance(truth, monkeypatch):
+    import shadowcorr.pipeline as pipeline
+
+    # cam1 declares a pose 40 m away: no registration bears it out, and the surface evidence allows
+    # for the error it may carry (projection_depth_tolerance_unverified_rel) on its landings alone.
+    stray = load_ue_scene(SAMPLE, "2001", [1]).views[0]
+    far = stray.pose.copy()
+    far[:3, 3] += [4000.0, 0.0, 0.0]
+    bundle = dataclasses.replace(truth, views=[*perturbed(truth, 1.0, 2.0).views, dataclasses.replace(stray, pose=far)])
+    read = []
+    surface_evidence = pipeline.surface_evidence
+    monkeypatch.setattr(pipeline, "surface_evidence",
+                        lambda b, s, c, unverified=None: read.append(unverified) or surface_evidence(b, s, c, unverified))
+    scene = prepare(bundle, CONFIG)
+    assert [r.status for r in scene.poses] == ["corrected"] * 4 + ["not_registered"]
+    assert read[-1].tolist() == unverified_poses(scene.poses).tolist() == [False] * 4 + [True]
+    prepare(bundle, CONFIG.with_options(refine_poses=False))  # no refinement judged any pose
+    assert read[-1] is None
 
 
 def test_corrections_beyond_the_bound_are_refused(truth):

@@ -16,7 +16,8 @@ from ..config import ShadowCorrConfig
 from ..nn import Model, load_model
 from ..pipeline import cut_segments, embed, prepare_segments
 from ..result import ViewPoseCorrection
-from ..stages import Segments, VoxelScene, group_by_evidence, pose_warnings, refine_poses, segment_support, support_features
+from ..stages import (Segments, VoxelScene, group_by_evidence, pose_warnings, refine_poses, segment_support,
+                      support_features, unverified_poses)
 from ._linking import (FOOTPRINT_MARGIN_VOXELS, corrected_report, footprints, rank_views, registered_corrections,
                        revisits)
 from ._models import MapEvent, MapObject, MapScan, MapSegment, MapState, MapUpdate, MapViewRef
@@ -215,11 +216,16 @@ class SiteMap:
             twins, repeating, repeats = revisits(summaries, new.view, stored, config.voxel_size)
             revisited = [MapViewRef(scan=int(stored.view_scans[w]), view=stored.view_names[w]) for w in twins]
             stored = stored.subset([w for w in range(len(stored.views)) if w not in twins])
+        # The scan's views whose poses the registration could not bear out (its reports come first); the
+        # stored views count as borne out.
+        unverified = None if poses is None else unverified_poses(poses[:len(local.views)])
         if stored is not None:
             run = SceneBundle(units=config.units, views=[*local.views, *stored.views], name=local.name)
-            scene = prepare_segments(run, join_segments(new, stored.segments), config, timings)
+            if unverified is not None:
+                unverified = np.r_[unverified, np.zeros(len(stored.views), dtype=bool)]
+            scene = prepare_segments(run, join_segments(new, stored.segments), config, timings, unverified)
         else:
-            scene = prepare_segments(local, new, config, timings)
+            scene = prepare_segments(local, new, config, timings, unverified)
         # Which stored segments the scan's own views see (their surface is visible there): the
         # scan is new evidence about them.  A view that repeats a stored one is not.
         fresh = [j for j in range(len(local.views)) if j not in repeating]

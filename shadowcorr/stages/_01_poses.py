@@ -590,11 +590,24 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
     return dataclasses.replace(bundle, views=views, warnings=list(bundle.warnings)), reports
 
 
+#: Statuses of a view whose pose the registration bore out: moved by a confirmed correction, or kept
+#: because every view registered and none needed a correction.
+_VERIFIED = ("corrected", "unchanged")
+
+
+def unverified_poses(reports: list[ViewPoseCorrection]) -> np.ndarray:
+    """(V,) bool: whether each view's declared pose stands without the registration bearing it out
+    (``not_registered``, ``correction_too_large``, ``not_confirmed``).  Such a pose keeps whatever
+    error it was declared with; the surface evidence allows for it
+    (``projection_depth_tolerance_unverified_rel``)."""
+    return np.array([r.status not in _VERIFIED for r in reports], dtype=bool)
+
+
 def pose_warnings(reports: list[ViewPoseCorrection]) -> list[str]:
     """One warning per view whose pose could not be refined or still looks inconsistent."""
     out = []
     for r in reports:
-        if r.status not in ("corrected", "unchanged"):
+        if r.status not in _VERIFIED:
             out.append(f"pose of view {r.view} not refined ({r.status.replace('_', ' ')}): {r.message}")
         elif r.consistent is False:
             out.append(f"pose of view {r.view}: {r.message}")

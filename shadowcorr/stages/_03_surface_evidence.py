@@ -7,6 +7,14 @@ that view's optical axis agrees with the view's own depth image within
 ``max(projection_depth_tolerance, projection_depth_tolerance_rel * depth)``.  A visible
 point lands on the segment that covers its pixel there, or on no segment.
 
+Where pose refinement could not bear out the declared pose of the segment's view or of the
+view it is projected into (``unverified``, :func:`~shadowcorr.stages.unverified_poses`), the
+relative tolerance is ``projection_depth_tolerance_unverified_rel`` instead: such a pose keeps
+the error it was declared with, and a turn of the camera moves a point sideways in proportion
+to its distance, and its depth along the other view's ray with it.  That is a rig whose
+cameras see too little common surface to register (80 cm high, grazing ground; two opposite
+cameras), where exactly the declared error then splits rocks.
+
 Counting the landings of a deterministic subsample of every segment's points gives, for every
 segment ``a`` and view ``j`` (never a segment's own view):
 
@@ -132,7 +140,8 @@ def _nearest_label(image: SegmentImage, row: np.ndarray, col: np.ndarray, target
     return out
 
 
-def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorrConfig) -> SurfaceEvidence:
+def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorrConfig,
+                     unverified: np.ndarray | None = None) -> SurfaceEvidence:
     """Project every segment's sample points into every other view (see the module docstring).
 
     ``pixel_tolerance`` counts pixels of the camera's full image: on a downsampled view (a site
@@ -192,7 +201,11 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
         else:
             at = row * width + col
         depth = view.depth.ravel()[at].astype(np.float64) * scale  # flat: 2x a 2-D gather
-        tolerance = np.maximum(config.projection_depth_tolerance, config.projection_depth_tolerance_rel * z)
+        rel = config.projection_depth_tolerance_rel
+        if unverified is not None and unverified.any():
+            wide = max(rel, config.projection_depth_tolerance_unverified_rel)
+            rel = np.where(unverified[j] | unverified[segments.view[seg[rows]]], wide, rel)
+        tolerance = np.maximum(config.projection_depth_tolerance, rel * z)
         agree = np.flatnonzero(np.isfinite(depth) & (depth > 0) & (np.abs(depth - z) <= tolerance))
         rows, row, col = rows[agree], row[agree], col[agree]
         src = seg[rows]

@@ -36,6 +36,7 @@ _EXPORTS = {
     # 01 poses
     "refine_poses": "_01_poses",
     "pose_warnings": "_01_poses",
+    "unverified_poses": "_01_poses",
     # 02 segments
     "Segments": "_02_segments",
     "Blobs": "_02_segments",
@@ -119,7 +120,7 @@ __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
-    from ._01_poses import pose_warnings, refine_poses
+    from ._01_poses import pose_warnings, refine_poses, unverified_poses
     from ._02_segments import Blobs, SegmentImage, Segments, back_project, check_valid_depth, extract_segments, find_blobs
     from ._03_seams import Seams, smooth_seams
     from ._03_surface_evidence import SurfaceEvidence, sample_segment_points, surface_evidence
