@@ -139,8 +139,8 @@ class ShadowCorrConfig(BaseModel):
         0.025, ge=0, lt=1, description="the relative depth tolerance where the pose of either view, the segment's or "
         "the one it is projected into, was declared and pose refinement could not verify it (status "
         "'not_registered', 'correction_too_large' or 'not_confirmed'): such a pose keeps its declared error, which "
-        "moves a point's depth along the other view's ray in proportion to its distance; below "
-        "projection_depth_tolerance_rel, that is used")
+        "moves a point's depth along the other view's ray in proportion to its distance; never narrower than "
+        "projection_depth_tolerance_rel")
     projection_pixel_tolerance: int | None = Field(
         None, ge=0, le=16, description="a visible point on a pixel of no segment lands on the nearest segment within "
         "this many pixels (masks that stop short of the outline); None: 6 for 'fused' (measured on the quality "

@@ -21,12 +21,12 @@ from __future__ import annotations
 from ._depth_noise import NOISE_ROW_STEP, relative_depth_noise
 from ._grid_keys import pack_cell_keys, unique_keys
 from ._segment_chunks import segment_chunks
-from ._sort_keys import argsort_keys, sort_keys
 from ._segment_reduce import segment_max, segment_min, segment_range, segment_starts
 from ._segment_separation import separated, separation_gap
+from ._sort_keys import argsort_keys, sort_keys
 from ._thread_map import resolve_threads, thread_map
 
 __all__ = [
     "NOISE_ROW_STEP", "argsort_keys", "pack_cell_keys", "relative_depth_noise", "segment_chunks", "segment_max", "segment_min", "segment_range", "segment_starts", "separated",
-    "separation_gap", "sort_keys", "resolve_threads", "thread_map", "unique_keys",
+    "separation_gap", "resolve_threads", "sort_keys", "thread_map", "unique_keys",
 ]

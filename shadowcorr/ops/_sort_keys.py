@@ -5,8 +5,8 @@ x86-64 machine of the benchmarks, ``benchmarks/bench_engine.py``), whatever it k
 The stages' keys say more:
 
 * Keys that arrive as a few sorted runs (points sorted by segment and, within each, by cell,
-  regrouped by object) are merged in linear time by a stable sort (timsort finds the runs):
-  about ten times faster than comparing them afresh.
+  regrouped by object) are merged by a stable sort (timsort finds the runs and merges them):
+  60 thousand keys in 6 runs take 0.6 ms against 2.7 ms.
 * Keys that span at most :data:`_RADIX_MAX_BITS` bits (a voxel cell and a segment index take
   25-35) are sorted least significant 16-bit digit first: NumPy sorts 16-bit integers stably
   by counting (radix sort), so each pass is linear; up to :data:`_RADIX_MAX_KEYS` keys the

@@ -11,9 +11,9 @@ Where pose refinement could not bear out the declared pose of the segment's view
 view it is projected into (``unverified``, :func:`~shadowcorr.stages.unverified_poses`), the
 relative tolerance is ``projection_depth_tolerance_unverified_rel`` instead: such a pose keeps
 the error it was declared with, and a turn of the camera moves a point sideways in proportion
-to its distance, and its depth along the other view's ray with it.  That is a rig whose
-cameras see too little common surface to register (80 cm high, grazing ground; two opposite
-cameras), where exactly the declared error then splits rocks.
+to its distance, and its depth along the other view's ray with it.  Rigs whose cameras share
+too little surface to register (80 cm high over grazing ground, two opposite cameras) keep
+their declared errors, and within the narrow tolerance those errors split rocks.
 
 Counting the landings of a deterministic subsample of every segment's points gives, for every
 segment ``a`` and view ``j`` (never a segment's own view):
