@@ -165,6 +165,10 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
     centre = np.stack([np.bincount(seg, weights=c, minlength=s) / safe for c in xyz], axis=1)
     radius = segment_max(np.sqrt(sum((c - np.repeat(centre[:, i], samples)) ** 2 for i, c in enumerate(xyz))), seg, s)
 
+    # Per segment: whether its own view's pose stands unverified (None: every pose verified or none judged).
+    from_unverified = unverified[segments.view] if unverified is not None and unverified.any() else None
+    wide = max(config.projection_depth_tolerance_rel, config.projection_depth_tolerance_unverified_rel)
+
     def land(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """Visible and on-mask counts of every segment in view j, and the (a, b) landing pairs."""
         view, image = bundle.views[j], segments.pixel_segment[j]
@@ -202,9 +206,8 @@ def surface_evidence(bundle: SceneBundle, segments: Segments, config: ShadowCorr
             at = row * width + col
         depth = view.depth.ravel()[at].astype(np.float64) * scale  # flat: 2x a 2-D gather
         rel = config.projection_depth_tolerance_rel
-        if unverified is not None and unverified.any():
-            wide = max(rel, config.projection_depth_tolerance_unverified_rel)
-            rel = np.where(unverified[j] | unverified[segments.view[seg[rows]]], wide, rel)
+        if from_unverified is not None:  # all wide into an unverified view, else per segment's own view
+            rel = wide if unverified[j] else np.where(from_unverified[seg[rows]], wide, rel)
         tolerance = np.maximum(config.projection_depth_tolerance, rel * z)
         agree = np.flatnonzero(np.isfinite(depth) & (depth > 0) & (np.abs(depth - z) <= tolerance))
         rows, row, col = rows[agree], row[agree], col[agree]
