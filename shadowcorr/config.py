@@ -192,6 +192,10 @@ class ShadowCorrConfig(BaseModel):
                                      "step exceeds fusion_seam_tolerance by more than this many standard errors "
                                      "shows two surfaces: its masks are not made one id because they co-land in other "
                                      "views, where a merged mask may draw two rocks as one (0: no such veto)")
+    fusion_seam_crease: float = Field(0.5, ge=0, description="a seam across which the depth's slope (depth per unit "
+                                      "of sideways distance) falls by more than this, sure by fusion_seam_noise "
+                                      "standard errors, is a crease between two surfaces, as where two rocks meet side "
+                                      "by side, and its masks stay two (0: not read)")
     fusion_merge_share: float = Field(0.25, ge=0, le=0.5, description="a segment whose landings in another view "
                                       "split, at least this share on each, over two segments that both land mostly "
                                       "on it and that a third view sees apart (or that meet across a depth step in "

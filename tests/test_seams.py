@@ -201,3 +201,27 @@ def test_a_seam_too_short_to_decide_is_unsure_and_an_occlusion_is_not():
     occluded = _view_seams(_image(labels), depth, config)
     assert occluded.first.size == 0 and occluded.unsure_first.size == 0
     assert occluded.apart_first.size == 0  # 12 samples: too short to show two surfaces either
+
+
+@pytest.mark.parametrize("gap", [0, 6])
+def test_a_valley_between_two_surfaces_is_a_crease_and_a_ridge_is_a_seam(gap):
+    """Two rocks side by side meet in a valley: each side's surface falls away towards the seam,
+    so the step between the sides (one common slope) is nil, but the slope changes across it.
+    A cut over the top of one rock (a ridge, convex towards the camera) stays a smooth seam."""
+    labels = _two_halves(gap)
+    cut = 80 + gap / 2.0
+    cols = np.arange(W, dtype=np.float64)[None, :].repeat(H, axis=0)
+    focal = (500.0, 500.0)  # pixels: at 5 m, 0.5 cm of depth per pixel is a world slope of 0.5
+    valley = 500.0 - 0.5 * np.abs(cols - cut)
+    ridge = 500.0 + 0.5 * np.abs(cols - cut)
+    config = ShadowCorrConfig()
+    creased = _view_seams(_image(labels), valley, config, focal=focal)
+    assert creased.first.size == 0 and creased.unsure_first.size == 0
+    assert creased.apart_first.tolist() == [0] and creased.apart_second.tolist() == [1]
+    # The step alone reads one surface there.
+    assert _view_seams(_image(labels), valley, config.with_options(fusion_seam_crease=0), focal=focal
+                       ).first.tolist() == [0]
+    smooth = _view_seams(_image(labels), ridge, config, focal=focal)
+    assert smooth.first.tolist() == [0] and smooth.apart_first.size == 0
+    # Without intrinsics the slope has no scale and the crease is not read.
+    assert _view_seams(_image(labels), valley, config).first.tolist() == [0]
