@@ -179,7 +179,8 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     if enough.size == 0:
         return Seams.empty()
     # Pixels of this image per unit of depth slope along each walk (fx along the rows, fy along the columns).
-    walk_focal = np.where(dx > 0, focal[0], focal[1]) if focal is not None else np.zeros(dx.size)
+    reads_crease = config.fusion_seam_crease > 0 and focal is not None
+    walk_focal = np.where(dx > 0, focal[0], focal[1]) if reads_crease else np.zeros(dx.size)
     a, b, step, zp, width, bend, bend_noise = _steps(labels, z, *(x[enough] for x in
                                                                   (rows, cols, a, b, d, dy, dx, walk_focal)))
     if a.size == 0:
@@ -189,9 +190,10 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     a, b = np.where(flip, b, a), np.where(flip, a, b)
     step = np.where(flip, -step, step)
     key = a * span + b
-    # The same runs sorted three ways (the bend needs no flip: walked the other way, both slopes
-    # change sign and sides, and their difference stays).
-    by_step, by_depth, by_bend = np.lexsort((step, key)), np.lexsort((zp, key)), np.lexsort((bend, key))
+    # The same runs sorted two ways, three where creases are read (the bend needs no flip: walked the
+    # other way, both slopes change sign and sides, and their difference stays).
+    by_step, by_depth = np.lexsort((step, key)), np.lexsort((zp, key))
+    by_bend = np.lexsort((bend, key)) if reads_crease else by_step
     key, step, zp, width = key[by_step], step[by_step], zp[by_depth], width[by_step]
     bend_noise, bend = bend_noise[by_step], bend[by_bend]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
@@ -214,7 +216,12 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     # (Segments.depth_noise), read as the occupancy stage reads it.
     if noise is None:
         noise = relative_depth_noise(np.asarray(depth)[::NOISE_ROW_STEP])
-    uncertainty = 1.25 * np.sqrt(square_width / counts) * noise * median_depth / np.sqrt(counts)
+
+    def median_uncertainty(square_sum: np.ndarray) -> np.ndarray:
+        """Per run, the median's standard error from the summed squares of its samples' noise (in sigmas)."""
+        return 1.25 * np.sqrt(square_sum / counts) * noise * median_depth / np.sqrt(counts)
+
+    uncertainty = median_uncertainty(square_width)
     smooth = (counts >= config.fusion_seam_min_pixels) & (np.abs(median_step) <= config.fusion_seam_tolerance)
     if config.fusion_seam_noise > 0:
         smooth &= config.fusion_seam_noise * uncertainty <= config.fusion_seam_tolerance
@@ -230,12 +237,12 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     if config.fusion_seam_apart > 0:
         apart = (counts >= config.fusion_seam_min_pixels) & (
             np.abs(median_step) > config.fusion_seam_tolerance + config.fusion_seam_apart * uncertainty)
-    if config.fusion_seam_crease > 0 and focal is not None:
+    if reads_crease:
         # A crease: the depth's slope falls across the seam (a valley, concave towards the camera)
         # by more than fusion_seam_crease, sure by fusion_seam_noise standard errors.  Two rocks
         # side by side meet in such a valley, at one depth, where the step sees one surface; a
         # cut through one (convex) rock leaves the slope going on, or rising.
-        bend_uncertainty = 1.25 * np.sqrt(square_bend / counts) * noise * median_depth / np.sqrt(counts)
+        bend_uncertainty = median_uncertainty(square_bend)
         crease = median_bend < -(config.fusion_seam_crease + config.fusion_seam_noise * bend_uncertainty)
         smooth &= ~crease
         unsure &= ~crease
