@@ -68,12 +68,13 @@ view's depth noise, is a *crease* and counts as apart, not as smooth or unsure. 
 on the quality benchmark's scenes (15 scenes or seeds per row), of the pairs that read as
 smooth or unsure, the crease takes 51 of the 61 pairs of two different rocks on the real scene
 under the ``mild`` errors and none of its 46 pairs of one rock cut in two; 13 of 21 and none
-of 26 on ``syn:2v-opposite``; 28 of 36 and 2 of 206 under 20 % splits; 29 of 111 and 3 of 164
-on ``syn:6v-uneven`` under ``harsh``.  A tolerance of 0.2 took more pairs of one rock (a
-rock's own hollows: 1 to 5 per row) for few more of two.  A pair that passes is a
-*candidate* only: the grouping reads it as one mask id for its per-view constraints (as the
-blobs of one mask), and the surface and volumetric evidence still decide whether the two
-join.  Mask ids are only compared within their own view; nothing here reads ground truth.
+of 26 on ``syn:2v-opposite``; 39 of 40 and 2 of 215 on ``syn:4v`` under 20 % splits (31 of 41
+and 2 of 207 on ``syn:4v-720p``); 29 of 111 and 3 of 164 on ``syn:6v-uneven`` under
+``harsh``.  A tolerance of 0.2 took more pairs of one rock (a rock's own hollows: 4 and 10 of
+them on those two rigs under 20 % splits) for one more pair of two rocks on each.  A pair
+that passes is a *candidate* only: the grouping reads it as one mask id for its per-view
+constraints (as the blobs of one mask), and the surface and volumetric evidence still decide
+whether the two join.  Mask ids are only compared within their own view; nothing here reads ground truth.
 
 Cost: one comparison of each view's window with itself shifted by a pixel per direction;
 everything else runs on the border pixels (a few per cent of the mask), and the sides are
