@@ -53,6 +53,10 @@ class ShadowCorrConfig(BaseModel):
                                    "a square of this width (pixels; odd, at most the sampling stride) of the pixels on its "
                                    "surface: less depth noise (1: the pixel alone)")
     pose_max_residual: float = Field(5.0, gt=0, description="registrations fitting worse (RMS point-to-plane, units) are not used")
+    pose_mask_alignment: bool = Field(True, description="turn the views that registration leaves 'not_registered' or "
+                                      "'correction_too_large' about their camera centres until the other views' masked "
+                                      "pixels land on their masks (cameras too low to share surface; see "
+                                      "shadowcorr.stages, stage 01 mask alignment)")
 
     # segments
     split_components: bool = Field(True, description="split disconnected blobs of one mask value into segments")

@@ -96,7 +96,9 @@ class ViewPoseCorrection(BaseModel):
         "every pose was kept exactly; "
         "'not_registered': too little overlap, degenerate or poorly fitting surface, or inconsistent with "
         "the others - its pose is kept; 'correction_too_large': the correction exceeded the configured "
-        "bound - its pose is kept; 'not_confirmed': corrected, the views' masks would not agree better where "
+        "bound - its pose is kept; with pose_mask_alignment, a view of either status is turned about its camera "
+        "centre to the other views' masks instead (`correction`, `message`); "
+        "'not_confirmed': corrected, the views' masks would not agree better where "
         "they see the same surface than with the declared poses (registration misled, e.g. by depth noise) - "
         "every pose of its group is kept"
     )

@@ -90,6 +90,10 @@ much of that surface, so the views can be registered to each other:
    scenes of 10, so with the masks as judge those scenes kept their declared poses.  Every view gets a
    report (applied correction, residual, overlap) and a warning when it still disagrees with
    its neighbours or was not refined.
+6. **Turned to the masks** (``pose_mask_alignment``, :mod:`._01_mask_alignment`).  Views left
+   ``not_registered`` or ``correction_too_large`` (cameras too low to share surface) turn about
+   their camera centres until the other views' masked pixels land on their masks; the views
+   registration bore out are held.  They keep their status, and their reports give the turn.
 
 Work is bounded and vectorised: about 20 000 samples per view, at most
 ``_COARSE_ITERATIONS`` GICP iterations (one thread) and ``2 x _FINE_ITERATIONS``
@@ -107,11 +111,12 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
-from ..bundle import SceneBundle, unit_scale
+from ..bundle import SceneBundle, View, unit_scale
 from ..config import ShadowCorrConfig
 from ..ops import thread_map
 from ..poses import world_up
 from ..result import ViewPoseCorrection
+from ._01_mask_alignment import align_to_masks
 from ._01_registration import (
     _Cloud,
     _Pair,
@@ -587,7 +592,40 @@ def _refine_in_order(bundle: SceneBundle, config: ShadowCorrConfig
             consistent=consistent, message=message,
         ))
         views.append(dataclasses.replace(view, pose=correction @ view.pose) if status[k] == "corrected" else view)
+    if config.pose_mask_alignment:
+        _align_unregistered(views, reports, config.max_depth / scale, config.pose_max_rotation_deg)
     return dataclasses.replace(bundle, views=views, warnings=list(bundle.warnings)), reports
+
+
+#: Statuses of the views that ``pose_mask_alignment`` turns to the other views' masks: those whose
+#: declared pose registration could not check.  ``not_confirmed`` views stay: registration saw them,
+#: and under depth noise their declared poses are often exact while the alignment drifts.
+_MASK_ALIGNED = ("not_registered", "correction_too_large")
+
+
+def _align_unregistered(views: list[View], reports: list[ViewPoseCorrection], max_depth: float,
+                        max_rotation_deg: float) -> None:
+    """Turn the views left ``_MASK_ALIGNED`` to the other views' masks (:func:`align_to_masks`), in place:
+    their poses, and their reports' correction, rotation and message (the status stays).  A turn
+    beyond ``max_rotation_deg`` is refused, as a registration's correction would be."""
+    free = [k for k, r in enumerate(reports) if r.status in _MASK_ALIGNED]
+    if not free:
+        return
+    poses = align_to_masks(views, free, max_depth)
+    for k in free:
+        correction = poses[k] @ np.linalg.inv(views[k].pose)
+        degrees = float(np.rad2deg(_rotation_angle(correction[:3, :3])))
+        if degrees > max_rotation_deg:
+            note = (f"the other views' masks would turn it {degrees:.2f} deg, beyond the bound "
+                    f"({max_rotation_deg} deg); pose kept")
+            reports[k] = reports[k].model_copy(update={"message": f"{reports[k].message}; {note}"
+                                                       if reports[k].message else note})
+            continue
+        note = f"turned {degrees:.3f} deg about its camera centre to the other views' masks (pose_mask_alignment)"
+        reports[k] = reports[k].model_copy(update={
+            "rotation_deg": round(degrees, 4), "correction": correction.round(9).tolist(),
+            "message": f"{reports[k].message}; {note}" if reports[k].message else note})
+        views[k] = dataclasses.replace(views[k], pose=poses[k])
 
 
 #: Statuses of a view whose pose the registration bore out: moved by a confirmed correction, or kept

@@ -3,6 +3,7 @@
 ::
 
     01 poses             SceneBundle -> SceneBundle with corrected poses   (optional: refine_poses)
+    01 mask_alignment    views + masks -> poses of the unregistered views turned onto the others' masks
     02 segments          SceneBundle -> Segments: one 3D point shell per mask blob
     03 surface_evidence  Segments -> SurfaceEvidence: where each segment lands in the other views
     03 seams             Segments + depth images -> Seams: neighbours of one view on one smooth surface
@@ -37,6 +38,7 @@ _EXPORTS = {
     "refine_poses": "_01_poses",
     "pose_warnings": "_01_poses",
     "unverified_poses": "_01_poses",
+    "align_to_masks": "_01_mask_alignment",
     # 02 segments
     "Segments": "_02_segments",
     "Blobs": "_02_segments",
@@ -120,6 +122,7 @@ __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
+    from ._01_mask_alignment import align_to_masks
     from ._01_poses import pose_warnings, refine_poses, unverified_poses
     from ._02_segments import Blobs, SegmentImage, Segments, back_project, check_valid_depth, extract_segments, find_blobs
     from ._03_seams import Seams, smooth_seams
