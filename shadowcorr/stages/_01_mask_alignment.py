@@ -38,7 +38,8 @@ moved (``_01_poses``): their poses are often exact and their depth noisy (under 
 the alignment turned such views by about 3 degrees).
 Work: the rock pixels on a grid of about ``_SAMPLED_PIXELS`` per view, and per step every ordered
 pair of views of which one moves and whose frustum the other's rocks reach (views of separate
-places never meet).
+places never meet): 0.3-0.5 s of CPU time on a scene of the low rig (four 1080p views, one to
+four of them turned), where registration itself takes about 0.12 s.
 """
 
 from __future__ import annotations
