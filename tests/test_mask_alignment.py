@@ -25,8 +25,8 @@ def scene():
 def turned(pose: np.ndarray, degrees: float, axis) -> np.ndarray:
     """The pose turned about its own camera centre by ``degrees`` about the world ``axis``."""
     out = pose.copy()
-    out[:3, :3] = Rotation.from_rotvec(np.deg2rad(degrees) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix() \
-        @ pose[:3, :3]
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    out[:3, :3] = Rotation.from_rotvec(np.deg2rad(degrees) * axis).as_matrix() @ pose[:3, :3]
     return out
 
 
@@ -64,7 +64,9 @@ def test_exact_poses_stay_exact(scene, free):
 def test_nothing_to_move_or_nothing_to_land_on_changes_nothing(scene):
     for free in ([], [7]):
         assert all(np.array_equal(p, v.pose) for p, v in zip(align_to_masks(scene.views, free, 5000.0), scene.views))
-    alone = dataclasses.replace(scene, views=[scene.views[0]] + [dataclasses.replace(v, mask=None) for v in scene.views[1:]])
+    # The other views carry no masks: nothing to land on, so nothing moves.
+    alone = dataclasses.replace(scene, views=[scene.views[0]] + [dataclasses.replace(v, mask=None)
+                                                                 for v in scene.views[1:]])
     off = turned(alone.views[0].pose, 1.0, (0, 0, 1))
     poses = align_to_masks(with_pose(alone, 0, off).views, [0], 5000.0)
     np.testing.assert_array_equal(poses[0], off)

@@ -12,8 +12,9 @@ placed in the world with ``i``'s pose and projected into view ``j``, should land
 ``j``, whichever; under a rotation error it lands beside it.  Each view's correction is a small
 rotation about its own camera centre (the rotation dominates: 2.5 cm of position error moves a
 landing 5 m away by 8 px, 1 degree by 28 px).  The rotations minimise the sum over all such
-landings of the squared pixel distance to the nearest mask pixel of the view they land in (a
-chamfer distance, from a Euclidean distance transform of every mask at half resolution):
+landings of the squared pixel distance beyond the masks' outline of the view they land in (a
+chamfer distance, from a Euclidean distance transform of every mask at half resolution; a
+landing within one sample of the outline counts as on it, :func:`_off_mask`):
 
 * a landing farther than ``_REACH_PX`` from any mask says nothing (a rock that the other view's
   segmenter dropped, or that lies outside its frame), nor does one that lands behind a nearer
@@ -29,13 +30,14 @@ chamfer distance, from a Euclidean distance transform of every mask at half reso
 Measured on the quality benchmark (``benchmarks/bench_quality.py``, 30 scenes per cell): on the
 low rig (``syn:4v-low``) the average purity under the ``mild`` errors rises from 98.51 to 98.95,
 under ``field`` from 95.74 to 97.43 and under ``harsh`` from 88.39 to 93.57; the clean row goes
-from 99.66 to 99.64 (one scene of 30 loses 0.9); the other 106 rows, whose views register, do not
-move.  Under 1 degree / 2.5 cm of pose error alone, the eight scenes of that rig that lost most
-rise from 96.79 to 99.58 (99.69 with exact poses), their views' relative rotation error falling
-from a median 1.5 to about 0.3 degrees.  With exact poses the rig's unregistered views still turn,
-by a median 0.10 degrees and at most 0.35 (``benchmarks/bench_poses.py``).  Views that registration left ``not_confirmed`` are not
-moved (``_01_poses``): their poses are often exact and their depth noisy (under 2 % depth noise
-the alignment turned such views by about 3 degrees).
+from 99.66 to 99.64 (one scene of 30 loses 0.9); the other 106 rows do not move.  Under 1
+degree / 2.5 cm of pose error alone, the eight scenes of that rig that lost most rise from 96.79
+to 99.58 (99.69 with exact poses), their views' relative rotation error falling from a median 1.5
+to about 0.3 degrees.  With exact poses the rig's unregistered views still turn, by a median 0.10
+degrees and at most 0.35 (``benchmarks/bench_poses.py``).  Views that registration left
+``not_confirmed`` are not moved (``_01_poses``): their poses are often exact and their depth
+noisy (under 2 % depth noise the alignment turned such views by about 3 degrees).
+
 Work: the rock pixels on a grid of about ``_SAMPLED_PIXELS`` per view, and per step every ordered
 pair of views of which one moves and whose frustum the other's rocks reach (views of separate
 places never meet): 0.3-0.5 s of CPU time on a scene of the low rig (four 1080p views, one to
