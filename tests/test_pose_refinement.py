@@ -432,9 +432,15 @@ def test_low_cameras_register_on_the_ground_they_see_at_grazing_incidence(monkey
     assert after.mean() < 0.6 * before.mean() and after.max() < 0.7, (before, after)
 
     monkeypatch.setattr(pose_refinement, "_grazing_pairs", lambda *args, **kwargs: [])
-    refined, reports = refine_poses(noisy, CONFIG)
+    refined, reports = refine_poses(noisy, CONFIG.with_options(pose_mask_alignment=False))
     assert [r.status for r in reports] == ["not_registered"] * 4
     assert np.array_equal(poses(refined), poses(noisy))
+    # Left unregistered, the views are turned to each other's masks instead (pose_mask_alignment).
+    refined, reports = refine_poses(noisy, CONFIG)
+    assert [r.status for r in reports] == ["not_registered"] * 4
+    assert all(r.rotation_deg > 0 for r in reports)
+    for view, after, r in zip(noisy.views, refined.views, reports):
+        np.testing.assert_allclose(np.asarray(r.correction) @ view.pose, after.pose, atol=1e-6)
 
 
 def test_views_registered_only_on_grazing_ground_keep_their_declared_horizontal_position(monkeypatch):
@@ -510,11 +516,11 @@ def test_a_registration_that_fits_worse_than_the_declared_poses_is_not_used():
     incidence converge to motions a tenth of a degree to degrees off, from GICP's start and from
     the declared poses alike.  Such a motion fits the surfaces worse than the declared poses - less
     matched surface per unit of residual at the same matching distance - and is not used: no pose
-    moves."""
+    moves.  (The masks' alignment of the views left unregistered is a step of its own, off here.)"""
     from shadowcorr.synth import SynthConfig, generate_scene
 
     exact = generate_scene(SynthConfig(camera_height=80.0, pitch_deg=(3.0, 9.0)), 3004)
-    refined, reports = refine_poses(exact, CONFIG)
+    refined, reports = refine_poses(exact, CONFIG.with_options(pose_mask_alignment=False))
     assert np.array_equal(poses(refined), poses(exact)), [(r.status, r.rotation_deg) for r in reports]
     assert any("fits worse than the declared poses" in (r.message or "") for r in reports), [r.message for r in reports]
 
