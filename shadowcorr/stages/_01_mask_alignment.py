@@ -53,6 +53,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial.transform import Rotation
 
 from ..bundle import View
+from ._03_surface_evidence import _frustum_candidates
 
 #: Rock pixels sampled per view (a regular grid over the image, kept where the mask is set).
 _SAMPLED_PIXELS = 60_000
@@ -135,7 +136,7 @@ def _pair_terms(points: np.ndarray, source_centre: np.ndarray, view: View, pose:
     if inside.size == 0:
         return None
     row, col = np.rint(v[inside]).astype(np.int64), np.rint(u[inside]).astype(np.int64)
-    seen = np.asarray(view.depth, dtype=np.float64)[row, col]
+    seen = view.depth[row, col].astype(np.float64)  # the landings' pixels only, not the whole image
     hidden = (seen > 0) & (seen < (1.0 - _HIDDEN_SHARE) * z[inside])
     distance, d_col, d_row = _off_mask(field, u[inside], v[inside])
     use = (distance > 0) & (distance < _REACH_PX) & ~hidden
@@ -157,18 +158,12 @@ def _pair_terms(points: np.ndarray, source_centre: np.ndarray, view: View, pose:
     return distance[use], by_source, by_view
 
 
-def _may_see(points: np.ndarray, view: View, pose: np.ndarray) -> bool:
-    """Whether the bounding sphere of world ``points`` reaches into the view's frustum."""
+def _bounding_sphere(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Centre (3,) and radius (1-element array) of a sphere around ``points``; None without any."""
     if points.shape[0] == 0:
-        return False
+        return None
     centre = points.mean(axis=0)
-    radius = float(np.sqrt(((points - centre) ** 2).sum(axis=1).max()))
-    k, (height, width) = view.intrinsics, view.depth.shape
-    c = (centre - pose[:3, 3]) @ pose[:3, :3]
-    planes = np.array([[k.fx, 0.0, k.cx + 0.5], [-k.fx, 0.0, width - 0.5 - k.cx],
-                       [0.0, k.fy, k.cy + 0.5], [0.0, -k.fy, height - 0.5 - k.cy], [0.0, 0.0, 1.0]])
-    planes /= np.linalg.norm(planes, axis=1, keepdims=True)
-    return bool(np.all(planes @ c >= -radius))
+    return centre, np.array([np.sqrt(((points - centre) ** 2).sum(axis=1).max())])
 
 
 def align_to_masks(views: Sequence[View], free: Sequence[int], max_depth: float) -> list[np.ndarray]:
@@ -187,8 +182,11 @@ def align_to_masks(views: Sequence[View], free: Sequence[int], max_depth: float)
     # The ordered pairs (i, j) of which one moves and whose views can see each other's rocks at all
     # (a bounding sphere against a frustum): views of separate places never meet.
     world = {k: points[k] @ poses[k][:3, :3].T + poses[k][:3, 3] for k in usable}
+    spheres = {k: _bounding_sphere(world[k]) for k in usable}
     pairs = [(i, j) for i in usable for j in usable
-             if i != j and (i in column or j in column) and _may_see(world[i], views[j], poses[j])]
+             if i != j and (i in column or j in column) and spheres[i] is not None
+             and _frustum_candidates(spheres[i][0][None], spheres[i][1], poses[j][:3, :3], poses[j][:3, 3],
+                                     views[j].intrinsics, views[j].depth.shape[1], views[j].depth.shape[0])[0]]
     fields = {k: _distance_field(views[k]) for k in {j for _, j in pairs}}
     prior = np.eye(unknowns) / np.deg2rad(_PRIOR_DEG) ** 2
     # Every view moving: the common turn is invisible, so the turns' mean is held at zero.

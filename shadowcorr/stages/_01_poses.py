@@ -615,16 +615,16 @@ def _align_unregistered(views: list[View], reports: list[ViewPoseCorrection], ma
     for k in free:
         correction = poses[k] @ np.linalg.inv(views[k].pose)
         degrees = float(np.rad2deg(_rotation_angle(correction[:3, :3])))
+        said = reports[k].message
         if degrees > max_rotation_deg:
             note = (f"the other views' masks would turn it {degrees:.2f} deg, beyond the bound "
                     f"({max_rotation_deg} deg); pose kept")
-            reports[k] = reports[k].model_copy(update={"message": f"{reports[k].message}; {note}"
-                                                       if reports[k].message else note})
+            reports[k] = reports[k].model_copy(update={"message": f"{said}; {note}" if said else note})
             continue
         note = f"turned {degrees:.3f} deg about its camera centre to the other views' masks (pose_mask_alignment)"
         reports[k] = reports[k].model_copy(update={
             "rotation_deg": round(degrees, 4), "correction": correction.round(9).tolist(),
-            "message": f"{reports[k].message}; {note}" if reports[k].message else note})
+            "message": f"{said}; {note}" if said else note})
         views[k] = dataclasses.replace(views[k], pose=poses[k])
 
 
