@@ -261,6 +261,14 @@ def test_a_merged_mask_is_found_where_a_third_view_sees_its_objects_apart():
     # Which masks only a depth step told apart (their rock is then read along the rays: join_nearest_surface).
     assert _merged_masks(stepped, view, instance, config)[1].tolist() == [False, False, True, False, False]
     assert not _merged_masks(surface, view, instance, config)[1].any()
+    # Or the two segments do not even touch in view 0, where its masks were read: a cut leaves the
+    # halves of one rock side by side.  Touching, or in a view whose masks were not read, nothing.
+    apart = replace(two_views, seams=Seams(none, none, none, np.zeros(0), np.zeros(0), views_read=np.array([0])))
+    assert _merged_masks(apart, view, instance, config)[1].tolist() == [False, False, True, False, False]
+    touching = replace(apart, seams=replace(apart.seams, touching_first=np.array([0]), touching_second=np.array([1])))
+    assert not merged_mask_segments(touching, view, instance, config).any()
+    elsewhere = replace(apart, seams=replace(apart.seams, views_read=np.array([1, 2])))
+    assert not merged_mask_segments(elsewhere, view, instance, config).any()
 
 
 def test_merge_share_is_validated():

@@ -10,7 +10,7 @@ import pytest
 from shadowcorr import ShadowCorrConfig
 from shadowcorr.ops import relative_depth_noise
 from shadowcorr.stages import SegmentImage, extract_segments, smooth_seams
-from shadowcorr.stages._03_seams import _view_seams
+from shadowcorr.stages._03_seams import TOUCH_REACH, _view_seams
 
 from .scenes import sphere_scene
 
@@ -63,6 +63,34 @@ def test_a_gap_wider_than_fusion_seam_gap_is_no_seam():
     config = ShadowCorrConfig()
     assert _view_seams(_image(_two_halves(config.fusion_seam_gap + 1)), _tilted_plane(), config).first.size == 0
     assert _view_seams(_image(_two_halves(config.fusion_seam_gap)), _tilted_plane(), config).first.size == 1
+
+
+def test_masks_that_touch_at_all_are_listed_whatever_their_seam_says():
+    config = ShadowCorrConfig()
+    # Smooth, apart (a step) or a corner too short to read: the pair touches.
+    depth = _tilted_plane()
+    stepped = _two_halves(2)
+    depth[stepped == 1] *= 1.08
+    corner = np.full((H, W), -1, dtype=np.int64)
+    corner[10:40, 10:40], corner[40:70, 40:70] = 0, 1  # meet at one corner: a single diagonal step
+    corner[39, 40] = 1
+    for labels, z in ((_two_halves(0), _tilted_plane()), (stepped, depth), (corner, _tilted_plane())):
+        seams = _view_seams(_image(labels), z, config)
+        assert seams.touching_first.tolist() == [0] and seams.touching_second.tolist() == [1]
+    assert _view_seams(_image(corner), _tilted_plane(), config).first.size == 0
+    # Beyond fusion_seam_gap no seam, but still touching; beyond TOUCH_REACH gaps, apart.
+    near = _view_seams(_image(_two_halves(config.fusion_seam_gap + 1)), _tilted_plane(), config)
+    assert near.first.size == 0 and near.touching_first.tolist() == [0]
+    far = _view_seams(_image(_two_halves(TOUCH_REACH * config.fusion_seam_gap + 1)), _tilted_plane(), config)
+    assert far.touching_first.size == 0
+
+
+def test_smooth_seams_says_which_views_it_read():
+    scene = sphere_scene([[0, 0, 40], [78, 0, 40]], [40, 40], cameras=3, width=160, height_px=120)
+    config = ShadowCorrConfig()
+    segments = extract_segments(scene, config)
+    assert smooth_seams(scene, segments, config).views_read.tolist() == [0, 1, 2]
+    assert smooth_seams(scene, segments, config.with_options(fusion_seam_gap=0)).views_read.size == 0
 
 
 def test_noisy_depth_needs_a_longer_seam():

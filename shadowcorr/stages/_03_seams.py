@@ -83,13 +83,13 @@ read only for pairs with enough samples to make a seam.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..bundle import SceneBundle
 from ..config import ShadowCorrConfig
-from ..ops import NOISE_ROW_STEP, relative_depth_noise, thread_map
+from ..ops import NOISE_ROW_STEP, relative_depth_noise, thread_map, unique_keys
 from ._02_segments import SegmentImage, Segments
 
 #: Most pixels read on each side of a seam along a walk, to which lines are fitted.
@@ -103,6 +103,12 @@ INSET = 1
 #: Walk directions (row step, column step): along the rows and the columns (a straight cut at
 #: any angle crosses one of them; the diagonals only add samples, at twice the cost).
 DIRECTIONS = ((0, 1), (1, 0))
+#: Two masks touch (``Seams.touching_first`` / ``touching_second``) across up to this many times
+#: ``fusion_seam_gap`` unlabelled pixels along a row or a column.  A rock's mask cut in two and
+#: eroded leaves its halves that far apart: under the quality benchmark's ``harsh`` errors (5 px
+#: erosion, 20 % line splits) a slanted cut left 20 px between the halves along the rows of a
+#: 1080p view, beyond the 16 of one gap.
+TOUCH_REACH = 2
 
 
 @dataclass
@@ -123,6 +129,13 @@ class Seams:
     # beyond the tolerance (``fusion_seam_apart`` standard errors): an occlusion or a crease.
     apart_first: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     apart_second: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    # Every pair that meets at all (``first < second``): some pixel of one follows a pixel of the
+    # other along a row or a column across at most ``TOUCH_REACH * fusion_seam_gap`` unlabelled pixels.
+    touching_first: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    touching_second: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    # The views whose masks were read (a view without depth or pixel labels is not): of two
+    # segments of such a view, not touching says they do not meet; of another view, nothing.
+    views_read: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @classmethod
     def empty(cls) -> "Seams":
@@ -141,13 +154,14 @@ def smooth_seams(bundle: SceneBundle, segments: Segments, config: ShadowCorrConf
             return Seams.empty()
         intrinsics = bundle.views[j].intrinsics
         focal = None if intrinsics is None else (intrinsics.fx * image.view_stride, intrinsics.fy * image.view_stride)
-        return _view_seams(image, depth, config, None if segments.depth_noise is None else segments.depth_noise[j],
-                           focal)
+        seams = _view_seams(image, depth, config, None if segments.depth_noise is None else segments.depth_noise[j],
+                            focal)
+        return replace(seams, views_read=np.array([j], dtype=np.int64))
 
     found = thread_map(view_seams, range(len(bundle.views)), config.num_threads)
     return Seams(*(np.concatenate([getattr(f, name) for f in found]) for name in
                    ("first", "second", "samples", "step", "uncertainty", "unsure_first", "unsure_second",
-                    "apart_first", "apart_second")))
+                    "apart_first", "apart_second", "touching_first", "touching_second", "views_read")))
 
 
 def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig, noise: float | None = None,
@@ -165,27 +179,33 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
         z = np.asarray(depth)[np.ix_(depth_rows, depth_cols)]
     else:
         z = depth[image.top:image.top + h, image.left:image.left + w]  # a view: read only where sampled
-    found = [_neighbours(labels, dy, dx, config.fusion_seam_gap) for dy, dx in DIRECTIONS]
+    found = [_neighbours(labels, dy, dx, TOUCH_REACH * config.fusion_seam_gap) for dy, dx in DIRECTIONS]
     rows, cols, a, b, d = (np.concatenate([f[i] for f in found]) for i in range(5))
     dy, dx = (np.repeat([direction[i] for direction in DIRECTIONS], [f[0].size for f in found]) for i in (0, 1))
+    span = int(labels.max()) + 1
+    key = np.minimum(a, b) * span + np.maximum(a, b)
+    pairs = unique_keys(key)
+    none = np.zeros(0, dtype=np.int64)
+    touching = Seams(none, none, none, np.zeros(0), np.zeros(0), touching_first=pairs // span,
+                     touching_second=pairs % span)
+    seam = np.flatnonzero(d <= config.fusion_seam_gap + 1)
+    rows, cols, a, b, d, dy, dx, key = (x[seam] for x in (rows, cols, a, b, d, dy, dx, key))
     # A pair with fewer samples than a seam (or an unsure one) needs is dropped before its sides
     # are read (reading only ever removes samples): most border pairs are corners where three
     # masks meet.
-    span = int(labels.max()) + 1
-    key = np.minimum(a, b) * span + np.maximum(a, b)
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     fewest = min(config.fusion_seam_min_pixels, UNSURE_MIN_PIXELS) if config.fusion_seam_unsure > 0 else \
         config.fusion_seam_min_pixels
     enough = np.flatnonzero(counts[inverse] >= fewest)
     if enough.size == 0:
-        return Seams.empty()
+        return touching
     # Pixels of this image per unit of depth slope along each walk (fx along the rows, fy along the columns).
     reads_crease = config.fusion_seam_crease > 0 and focal is not None
     walk_focal = np.where(dx > 0, focal[0], focal[1]) if reads_crease else np.zeros(dx.size)
     a, b, step, zp, width, bend, bend_noise = _steps(labels, z, *(x[enough] for x in
                                                                   (rows, cols, a, b, d, dy, dx, walk_focal)))
     if a.size == 0:
-        return Seams.empty()
+        return touching
     # One orientation per pair: the step is measured from the smaller index to the larger.
     flip = a > b
     a, b = np.where(flip, b, a), np.where(flip, a, b)
@@ -204,7 +224,7 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     keep = counts >= fewest
     starts, counts, square_width, square_bend = starts[keep], counts[keep], square_width[keep], square_bend[keep]
     if starts.size == 0:
-        return Seams.empty()
+        return touching
     # Median of each run: the steps are sorted within their key.
     lower, upper = starts + (counts - 1) // 2, starts + counts // 2
     median_step = 0.5 * (step[lower] + step[upper])
@@ -250,7 +270,7 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
         apart |= crease
     k, u, t = key[starts][smooth], key[starts][unsure], key[starts][apart & ~unsure]
     return Seams(k // span, k % span, counts[smooth].astype(np.int64), median_step[smooth], uncertainty[smooth],
-                 u // span, u % span, t // span, t % span)
+                 u // span, u % span, t // span, t % span, touching.touching_first, touching.touching_second)
 
 
 def _neighbours(labels: np.ndarray, dy: int, dx: int, gap: int
