@@ -53,6 +53,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial.transform import Rotation
 
 from ..bundle import View
+from ._01_registration import sampling_stride
 from ._03_surface_evidence import _frustum_candidates
 
 #: Rock pixels sampled per view (a regular grid over the image, kept where the mask is set).
@@ -72,7 +73,7 @@ _CONVERGED_DEG = 0.005
 def _rock_points(view: View, max_depth: float) -> np.ndarray:
     """(N, 3) camera-frame points of the view's masked pixels with valid depth, on a regular grid."""
     height, width = view.depth.shape
-    stride = max(1, int(round(np.sqrt(height * width / _SAMPLED_PIXELS))))
+    stride = sampling_stride(height, width, _SAMPLED_PIXELS)
     z = np.asarray(view.depth[::stride, ::stride], dtype=np.float64)
     rows, cols = np.mgrid[0:height:stride, 0:width:stride]
     keep = (np.asarray(view.mask[::stride, ::stride]) > 0) & (z > 0) & (z <= max_depth)  # False for NaN

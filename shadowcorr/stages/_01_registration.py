@@ -117,9 +117,10 @@ class _Pair:
     incidence: tuple[float, float]  # median degrees between each camera's rays and the matched surface
 
 
-def sampling_stride(height: int, width: int) -> int:
-    """The stride of the pose stage's pixel grid: about ``_SAMPLED_PIXELS`` samples per image."""
-    return max(1, int(round(np.sqrt(height * width / _SAMPLED_PIXELS))))
+def sampling_stride(height: int, width: int, samples: int = _SAMPLED_PIXELS) -> int:
+    """The stride of a regular pixel grid of about ``samples`` pixels per image (by default the
+    registration's ``_SAMPLED_PIXELS``)."""
+    return max(1, int(round(np.sqrt(height * width / samples))))
 
 
 def depth_on_grid(depth: np.ndarray, stride: int, window: int, max_depth: float) -> np.ndarray:

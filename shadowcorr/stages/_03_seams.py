@@ -89,7 +89,7 @@ import numpy as np
 
 from ..bundle import SceneBundle
 from ..config import ShadowCorrConfig
-from ..ops import NOISE_ROW_STEP, relative_depth_noise, thread_map, unique_keys
+from ..ops import NOISE_ROW_STEP, relative_depth_noise, thread_map
 from ._02_segments import SegmentImage, Segments
 
 #: Most pixels read on each side of a seam along a walk, to which lines are fitted.
@@ -185,19 +185,18 @@ def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig
     dy, dx = (np.repeat([direction[i] for direction in DIRECTIONS], [f[0].size for f in found]) for i in (0, 1))
     span = int(labels.max()) + 1
     key = np.minimum(a, b) * span + np.maximum(a, b)
-    pairs = unique_keys(key)
+    pairs, inverse = np.unique(key, return_inverse=True)
     none = np.zeros(0, dtype=np.int64)
     touching = Seams(none, none, none, np.zeros(0), np.zeros(0), touching_first=pairs // span,
                      touching_second=pairs % span)
-    seam = np.flatnonzero(d <= config.fusion_seam_gap + 1)
-    rows, cols, a, b, d, dy, dx, key = (x[seam] for x in (rows, cols, a, b, d, dy, dx, key))
-    # A pair with fewer samples than a seam (or an unsure one) needs is dropped before its sides
-    # are read (reading only ever removes samples): most border pairs are corners where three
-    # masks meet.
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    # Seams are read only across one fusion_seam_gap.  A pair with fewer such samples than a seam
+    # (or an unsure one) needs is dropped before its sides are read (reading only ever removes
+    # samples): most border pairs are corners where three masks meet.
+    seam = d <= config.fusion_seam_gap + 1
+    counts = np.bincount(inverse[seam], minlength=pairs.size)
     fewest = min(config.fusion_seam_min_pixels, UNSURE_MIN_PIXELS) if config.fusion_seam_unsure > 0 else \
         config.fusion_seam_min_pixels
-    enough = np.flatnonzero(counts[inverse] >= fewest)
+    enough = np.flatnonzero(seam & (counts[inverse] >= fewest))
     if enough.size == 0:
         return touching
     # Pixels of this image per unit of depth slope along each walk (fx along the rows, fy along the columns).
