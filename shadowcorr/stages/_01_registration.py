@@ -149,15 +149,19 @@ def depth_on_grid(depth: np.ndarray, stride: int, window: int, max_depth: float)
     if reach == 0:
         return centre
     tolerance = _WINDOW_EDGE_SHARE * centre
-    total, count = np.zeros_like(centre), np.zeros_like(centre)
+    # Every window pixel of every sample, read once into (row offset, column offset, sample row,
+    # sample column) order: the strided reads fetch a window row's pixels together, and each offset's
+    # samples are then one contiguous (h, w) plane.
+    span = slice(half - reach, half + reach + 1)
+    window_depth = np.ascontiguousarray(blocks[:, span, :, span].transpose(1, 3, 0, 2), dtype=np.float64)
     with np.errstate(invalid="ignore"):
-        for dr in range(-reach, reach + 1):
-            for dc in range(-reach, reach + 1):
-                neighbour = blocks[:, half + dr, :, half + dc].astype(np.float64)
-                # within a tenth of a valid centre's depth, so positive; False where either is NaN
-                same = (np.abs(neighbour - centre) <= tolerance) & (neighbour <= max_depth)
-                np.add(total, neighbour, out=total, where=same)
-                count += same
+        # within a tenth of a valid centre's depth, so positive; False where either is NaN
+        same = (np.abs(window_depth - centre) <= tolerance) & (window_depth <= max_depth)
+    total = np.zeros_like(centre)
+    for dr in range(2 * reach + 1):  # one offset after the other: the sums' rounding does not depend on the layout
+        for dc in range(2 * reach + 1):
+            np.add(total, window_depth[dr, dc], out=total, where=same[dr, dc])
+    count = same.sum(axis=(0, 1))
     return np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
 
 
