@@ -209,6 +209,10 @@ class ShadowCorrConfig(BaseModel):
                                       "points joins the group whose surface lies nearest to most of its points, "
                                       "counting those within this distance (units; see "
                                       "shadowcorr.stages.join_nearest_surface)")
+    fusion_isolated_reach: float = Field(12.0, ge=0, description="a segment without any evidence with another "
+                                         "segment that stands alone joins the group of the nearest surface another "
+                                         "view saw within this distance, unless that group holds a segment of its "
+                                         "view (units; see shadowcorr.stages.join_isolated; 0: never)")
     fusion_threshold: float = Field(0.0, description="groups merge while their linkage exceeds this")
     fusion_confidence_slope: float = Field(4.0, gt=0, description="slope of the logistic turning a segment's "
                                            "linkage margin into its confidence")

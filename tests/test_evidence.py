@@ -11,7 +11,8 @@ from pydantic import ValidationError
 from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle
 from shadowcorr.stages import (
-    Seams, SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, join_nearest_surface, link_components,
+    Seams, SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, join_isolated, join_nearest_surface,
+    link_components,
     merged_mask_segments, sample_segment_points, segment_confidence, split_mask_ids, surface_evidence, without_landings_on,
 )
 
@@ -628,3 +629,27 @@ def test_a_view_whose_pose_refinement_could_not_verify_lands_within_the_wider_de
     np.testing.assert_array_equal(
         surface_evidence(shifted, segments, narrow, unverified=np.array([True, False, False, False])).visible,
         verified.visible)
+
+
+def test_an_isolated_sliver_joins_the_nearest_group_another_view_sees_unless_that_group_holds_its_view():
+    # Rock A: segments 0 (view 0) and 1 (view 1), linked by their landings.  Segments 2-4 have no
+    # evidence at all: 2 (view 2) touches segment 0's surface; 3 (view 0) lies 8 units from
+    # segment 1, but its own view already sees rock A as segment 0; 4 (view 2) lies far from all.
+    graph = _graph([0, 1, 2, 0, 2], [1, 1, 1, 2, 2], np.zeros((5, 3), np.int64), [(0, 1, 50), (1, 0, 50)])
+    line = np.c_[np.arange(0.0, 10.0, 2.0), np.zeros(5), np.zeros(5)]
+    shells = [line, line + [0, 0, 30], line[:2] + [12, 0, 0], line[:2] + [0, 8, 30], line[:2] + [100, 0, 0]]
+    points, count = np.concatenate(shells).astype(np.float32), np.array([len(x) for x in shells])
+    labels = np.array([0, 0, 2, 3, 4])
+    config = ShadowCorrConfig(method="fused")
+    assert join_isolated(labels, graph, points, count, config).tolist() == [0, 0, 0, 3, 4]
+    # within reach of nothing, or with the rule off, every one stays
+    assert join_isolated(labels, graph, points, count, config.with_options(fusion_isolated_reach=1.0)).tolist() \
+        == [0, 0, 2, 3, 4]
+    assert join_isolated(labels, graph, points, count, config.with_options(fusion_isolated_reach=0.0)) is labels
+    # a segment with any evidence (here a shared shadow voxel) is left to the agglomeration
+    linked = _graph([0, 1, 2, 0, 2], [1, 1, 1, 2, 2], np.zeros((5, 3), np.int64), [(0, 1, 50), (1, 0, 50)],
+                    volume=[(2, 4, -0.5, 1.0)])
+    assert join_isolated(labels, linked, points, count, config).tolist() == [0, 0, 2, 3, 4]
+    # a segment of many points casts a shadow deep enough to meet its rock: where it meets nothing, it stays
+    large = replace(graph, surface=replace(graph.surface, samples=np.array([100, 100, 1000, 100, 100])))
+    assert join_isolated(labels, large, points, count, config).tolist() == [0, 0, 2, 3, 4]

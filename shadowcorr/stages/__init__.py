@@ -86,6 +86,7 @@ _EXPORTS = {
     "group_by_evidence": "_09_grouping",
     "link_components": "_09_grouping",
     "merged_mask_segments": "_09_grouping",
+    "join_isolated": "_09_grouping",
     "join_nearest_surface": "_09_grouping",
     "segment_confidence": "_09_grouping",
     "EvidenceGroups": "_09_grouping",
@@ -136,7 +137,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._08_volume_evidence import segment_embeddings, volume_pairs
     from ._09_clustering import cluster_voxels, majority_vote, mean_shift, merge_small_clusters
     from ._09_grouping import (
-        EvidenceGroups, SegmentGraph, agglomerate, group_by_evidence, join_nearest_surface, link_components,
+        EvidenceGroups, SegmentGraph, agglomerate, group_by_evidence, join_isolated, join_nearest_surface, link_components,
         merged_mask_segments, segment_confidence, split_mask_ids, without_landings_on,
     )
     from ._09_support import (SUPPORT_FEATURES, SupportCalibration, SupportTrees, segment_support, support_calibration,
