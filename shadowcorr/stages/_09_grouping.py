@@ -805,20 +805,18 @@ def join_isolated(labels: np.ndarray, graph: SegmentGraph, shell_points: np.ndar
     if candidates.size == 0:
         return labels
     owner = np.repeat(np.arange(view.size), shell_count)
+    # per view with surface points: a k-d tree of them and the segment of each
     trees: dict[int, tuple[KDTree, np.ndarray]] = {}
+    for u in np.unique(view[owner]).tolist():
+        members = np.flatnonzero(view[owner] == u)
+        trees[u] = (KDTree(np.asarray(shell_points[members], dtype=np.float64)), owner[members])
     out = labels.copy()
     ends = np.cumsum(shell_count)
     for a in candidates.tolist():
         points = np.asarray(shell_points[ends[a] - shell_count[a]:ends[a]], dtype=np.float64)
         best, target = np.inf, -1
-        for u in np.unique(view).tolist():
+        for u, (tree, segment_of) in trees.items():
             if u == view[a]:
-                continue
-            if u not in trees:
-                members = np.flatnonzero(view[owner] == u)
-                trees[u] = (KDTree(np.asarray(shell_points[members], dtype=np.float64)), owner[members])
-            tree, segment_of = trees[u]
-            if segment_of.size == 0:
                 continue
             distance, nearest = tree.query(points, k=1)
             i = int(np.argmin(distance))
