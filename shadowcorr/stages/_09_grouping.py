@@ -739,7 +739,7 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
         # is read from the landings on it, which the graph leaves out.
         labels = join_nearest_surface(agglomerate(graph, config), scene.surface, scene.segment_view, merged, config,
                                       scene.shell_points, scene.shell_count, cameras, step_only)[:s]
-        if config.method == "fused" and scene.shell_points is not None:
+        if scene.shell_points is not None:
             labels = join_isolated(labels, graph, scene.shell_points, scene.shell_count, config)
     return EvidenceGroups(labels[:s], graph, merged)
 
@@ -805,29 +805,23 @@ def join_isolated(labels: np.ndarray, graph: SegmentGraph, shell_points: np.ndar
     if candidates.size == 0:
         return labels
     owner = np.repeat(np.arange(view.size), shell_count)
-    # per view with surface points: a k-d tree of them and the segment of each
-    trees: dict[int, tuple[KDTree, np.ndarray]] = {}
-    for u in np.unique(view[owner]).tolist():
-        members = np.flatnonzero(view[owner] == u)
-        trees[u] = (KDTree(np.asarray(shell_points[members], dtype=np.float64)), owner[members])
-    out = labels.copy()
     ends = np.cumsum(shell_count)
-    for a in candidates.tolist():
-        points = np.asarray(shell_points[ends[a] - shell_count[a]:ends[a]], dtype=np.float64)
-        best, target = np.inf, -1
-        for u, (tree, segment_of) in trees.items():
-            if u == view[a]:
-                continue
-            distance, nearest = tree.query(points, k=1)
+    # Per candidate: the nearest shell point of another view, one k-d tree per view that holds a candidate.
+    target, gap = np.full(view.size, -1), np.full(view.size, np.inf)
+    for v in np.unique(view[candidates]).tolist():
+        others = np.flatnonzero(view[owner] != v)
+        if others.size == 0:
+            continue
+        tree = KDTree(np.asarray(shell_points[others], dtype=np.float64))
+        for a in candidates[view[candidates] == v].tolist():
+            distance, nearest = tree.query(np.asarray(shell_points[ends[a] - shell_count[a]:ends[a]], np.float64), k=1)
             i = int(np.argmin(distance))
-            if distance[i] < best:
-                best, target = float(distance[i]), int(segment_of[nearest[i]])
-        if target < 0 or best > reach:
+            gap[a], target[a] = distance[i], owner[others[nearest[i]]]
+    out = labels.copy()
+    for a in candidates.tolist():  # in order: a group that took a segment of a view takes no other of it
+        if gap[a] > reach or (view[out == out[target[a]]] == view[a]).any():
             continue
-        group = out[target]
-        if (view[out == group] == view[a]).any():
-            continue
-        out[a] = group
+        out[a] = out[target[a]]
     return out
 
 
