@@ -10,8 +10,8 @@ the same perturbation seeds, the same scoring: ``bench_quality.segment_truth`` a
 against its rock's *main object* (the object holding most of the rock's segments) and its
 object's *main rock*:
 
-* **piece kept apart** - its object holds only segments of its own rock, and is not the rock's
-  main object: the rock fell apart.
+* **piece kept apart** - its object's main rock is its own rock, but its object is not the
+  rock's main object: the rock fell apart.
   - *its view in the main object*: the main object holds a segment of the piece's view, so
     the view's cannot-link (two mask ids of one view) stood between them - a piece that a
     split mask cut off and that the seams and the other views did not join back;
