@@ -73,17 +73,7 @@ def classify(truth: np.ndarray, labels: np.ndarray, view: np.ndarray, wrong: np.
     ``drawn_over_rocks``: whether its mask was drawn over several rocks (the perturbation's
     record); ``read_as_merged``: whether the grouping read it as a merged mask.
     """
-    scored = truth >= 0
-
-    def main_of(keys: np.ndarray, values: np.ndarray) -> dict[int, int]:
-        """Per key, the value it shares most segments with (ties: the lowest value)."""
-        pairs, counts = np.unique(np.stack([keys, values], axis=1), axis=0, return_counts=True)
-        order = np.lexsort((pairs[:, 1], -counts, pairs[:, 0]))
-        first = order[np.r_[True, pairs[order][1:, 0] != pairs[order][:-1, 0]]]
-        return {int(k): int(v) for k, v in pairs[first]}
-
-    main_object = main_of(truth[scored], labels[scored])
-    main_rock = main_of(labels[scored], truth[scored])
+    main_rock, main_object = bench_quality.majorities(truth, labels)
     out = []
     for k in np.flatnonzero(wrong):
         rock, obj = int(truth[k]), int(labels[k])
@@ -117,18 +107,12 @@ def _init_worker() -> None:
 
 def run_task(task: Any) -> list[dict[str, Any]]:
     """Every condition of one quality-benchmark task: its wrong segments with their classes."""
-    import shadowcorr
     from shadowcorr import ShadowCorrConfig, assign, prepare
-    from shadowcorr.convert import load_ue_scene
     from shadowcorr.stages import embed, group_by_evidence
 
     config = ShadowCorrConfig()
-    clean = (load_ue_scene(task.scene, bench_quality.REAL_SET, task.cameras) if task.cameras
-             else shadowcorr.load_bundle(task.scene))
     records = []
-    for name, perturbation, seed in task.conditions:
-        merged: dict[str, dict[int, set[int]]] = {}
-        bundle = clean if perturbation is None else bench_quality.perturb(clean, perturbation, seed, merged)
+    for name, _, _, clean, bundle, merged in bench_quality.task_bundles(task):
         scene = prepare(bundle, config)
         (embeddings,) = embed(_MODEL, [scene])
         read_as_merged = group_by_evidence(scene, embeddings, config).merged

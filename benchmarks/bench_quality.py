@@ -400,6 +400,21 @@ def segment_truth(bundle: Any, result: Any, clean: Any = None, merged: dict | No
     return truth
 
 
+def majorities(truth: np.ndarray, pred: np.ndarray) -> tuple[dict[int, int], dict[int, int]]:
+    """Per object its majority rock, and per rock its majority object, over the segments with
+    truth (ties: the lowest id)."""
+    scored = truth >= 0
+    if not scored.any():
+        return {}, {}
+    t, p = truth[scored], pred[scored]
+    pairs, counts = np.unique(np.stack([t, p], axis=1), axis=0, return_counts=True)
+    order = np.lexsort((-counts, pairs[:, 1]))  # per object: largest rock first
+    obj_major = {int(o): int(r) for r, o in pairs[order][np.unique(pairs[order][:, 1], return_index=True)[1]]}
+    order = np.lexsort((-counts, pairs[:, 0]))  # per rock: largest object first
+    rock_major = {int(r): int(o) for r, o in pairs[order][np.unique(pairs[order][:, 0], return_index=True)[1]]}
+    return obj_major, rock_major
+
+
 def wrong_segments(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
     """Segments in the wrong place: their object's majority rock is another rock, or they are
     not in their rock's majority object (a merge or a split), or unlabelled (< 0).  Segments
@@ -408,13 +423,9 @@ def wrong_segments(truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
     wrong = np.zeros(truth.size, dtype=bool)
     if not scored.any():
         return wrong
-    t, p = truth[scored], pred[scored]
-    pairs, counts = np.unique(np.stack([t, p], axis=1), axis=0, return_counts=True)
-    order = np.lexsort((-counts, pairs[:, 1]))  # per object: largest rock first
-    obj_major = {int(o): int(r) for r, o in pairs[order][np.unique(pairs[order][:, 1], return_index=True)[1]]}
-    order = np.lexsort((-counts, pairs[:, 0]))  # per rock: largest object first
-    rock_major = {int(r): int(o) for r, o in pairs[order][np.unique(pairs[order][:, 0], return_index=True)[1]]}
-    wrong[scored] = [o < 0 or obj_major[int(o)] != int(r) or rock_major[int(r)] != int(o) for r, o in zip(t, p)]
+    obj_major, rock_major = majorities(truth, pred)
+    wrong[scored] = [o < 0 or obj_major[int(o)] != int(r) or rock_major[int(r)] != int(o)
+                     for r, o in zip(truth[scored], pred[scored])]
     return wrong
 
 
@@ -474,19 +485,30 @@ def _init_worker(model_path: str | None, threads: int) -> None:
     shadowcorr.correspond(sphere_scene([[0, 0, 40], [90, 0, 40]], [40, 45]), _MODEL, metrics=False)
 
 
-def run_task(task: Task) -> Task:
-    """Load the scene, then every (condition, method) run on it; one record each."""
+def task_bundles(task: Task, skip: Callable[[str], bool] = lambda name: False) -> Iterable[tuple]:
+    """The task's clean scene, loaded once, and per condition (except those ``skip`` names)
+    ``(name, perturbation, seed, clean, bundle, merged)``: the bundle under the condition's
+    perturbation and the masks its merges drew over several rocks (see :func:`perturb`)."""
     import shadowcorr
     from shadowcorr.convert import load_ue_scene
-    from shadowcorr.evaluation import segment_metrics
 
     clean = load_ue_scene(task.scene, REAL_SET, task.cameras) if task.cameras else shadowcorr.load_bundle(task.scene)
     for name, perturbation, seed in task.conditions:
-        methods = [m for m in task.methods if (name, m) not in task.done]
-        if not methods:
+        if skip(name):
             continue
         merged: dict[str, dict[int, set[int]]] = {}
         bundle = clean if perturbation is None else perturb(clean, perturbation, seed, merged)
+        yield name, perturbation, seed, clean, bundle, merged
+
+
+def run_task(task: Task) -> Task:
+    """Load the scene, then every (condition, method) run on it; one record each."""
+    import shadowcorr
+    from shadowcorr.evaluation import segment_metrics
+
+    for name, perturbation, seed, clean, bundle, merged in task_bundles(task, skip=lambda name: all(
+            (name, m) in task.done for m in task.methods)):
+        methods = [m for m in task.methods if (name, m) not in task.done]
         for method in methods:
             base = {"condition": name, "rig": task.rig, "perturbation": perturbation, "scene": task.scene_index,
                     "scene_name": task.scene_name, "perturbation_seed": seed if perturbation else None,

@@ -24,22 +24,27 @@ from typing import Any, Mapping, Sequence
 
 import httpx
 
-__all__ = ["ServerProcess", "free_port", "REPO_ROOT", "add_zeros_member", "load_bench_quality", "zip_files",
-           "zipped_bundle"]
+__all__ = ["ServerProcess", "free_port", "REPO_ROOT", "add_zeros_member", "load_bench_quality", "load_benchmark",
+           "zip_files", "zipped_bundle"]
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MiB = 1024 * 1024
 
 
-def load_bench_quality() -> Any:
-    """``benchmarks/bench_quality.py`` as a module (the benchmarks are scripts, not a package)."""
+def load_benchmark(name: str) -> Any:
+    """``benchmarks/NAME.py`` as a module (the benchmarks are scripts, not a package)."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("bench_quality", REPO_ROOT / "benchmarks" / "bench_quality.py")
+    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "benchmarks" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses resolve their annotations through it
     spec.loader.exec_module(module)
     return module
+
+
+def load_bench_quality() -> Any:
+    """``benchmarks/bench_quality.py`` as a module."""
+    return load_benchmark("bench_quality")
 
 
 def free_port() -> int:

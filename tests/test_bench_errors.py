@@ -3,25 +3,16 @@ and a real run whose classes add up to the quality benchmark's own count of wron
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from tests.harness import REPO_ROOT, load_bench_quality
-
-
-def _load_bench_errors():
-    spec = importlib.util.spec_from_file_location("bench_errors", REPO_ROOT / "benchmarks" / "bench_errors.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+from tests.harness import load_bench_quality, load_benchmark
 
 
 def test_each_kind_of_wrong_segment_gets_its_class():
-    errors = _load_bench_errors()
+    errors = load_benchmark("bench_errors")
     bench = load_bench_quality()
     # Rock 0: two segments in object 0, and a piece of view 0 alone in object 5.
     # Rock 1: object 1 holds its two segments of view 0; its segment of view 1 sits alone in object 2.
@@ -43,7 +34,7 @@ def test_each_kind_of_wrong_segment_gets_its_class():
 
 
 def test_a_real_run_counts_the_quality_benchmarks_wrong_segments(tmp_path, capsys):
-    errors = _load_bench_errors()
+    errors = load_benchmark("bench_errors")
     bench = sys.modules["bench_quality"]  # the module bench_errors reads its scoring from (ships examples/ue_sample)
     condition = "real:04+merge10%"
     out = tmp_path / "errors.md"
