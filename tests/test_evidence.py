@@ -272,6 +272,39 @@ def test_a_merged_mask_is_found_where_a_third_view_sees_its_objects_apart():
     assert not merged_mask_segments(elsewhere, view, instance, config).any()
 
 
+def test_a_merged_mask_that_sees_little_of_the_other_view_is_found_from_the_segments_under_it():
+    """Two opposite views share only the rocks' rims: merged mask 2 of view 1 lands 60 points in
+    view 0 and none elsewhere, all on segment 0, so its spread there names one segment.  Segments 0 and 1 of view 0
+    both land mostly on it, and they do not touch in view 0: a merged mask all the same."""
+    none = np.zeros(0, dtype=np.int64)
+    view, instance = np.array([0, 0, 1]), np.array([1, 2, 1])
+    n, few = 100, 60
+    surface = _graph(view, instance, [[0, n], [0, n], [few, 0]], [(0, 2, n), (1, 2, n), (2, 0, few)]).surface
+    apart = replace(surface, seams=Seams(none, none, none, np.zeros(0), np.zeros(0), views_read=np.array([0])))
+    config = ShadowCorrConfig(method="fused")
+    assert merged_mask_segments(apart, view, instance, config).tolist() == [False, False, True]
+    # Where the mask lands often enough in view 0 (150 points and more), its own spread is read:
+    # all of it on segment 0, so segment 1 is another rock's, seen through the rim.
+    many = replace(apart, on_mask=np.array([[0, n], [0, n], [200, 0]]), hit_count=np.array([n, n, 200]))
+    assert not merged_mask_segments(many, view, instance, config).any()
+    # So it is where the mask lands often in any other view: a third view reads how it spreads.
+    view3, instance3 = np.array([0, 0, 1, 2]), np.array([1, 2, 1, 1])
+    seen_by_third = _graph(view3, instance3, [[0, n, 0], [0, n, 0], [few, 0, 200], [0, 0, 0]],
+                           [(0, 2, n), (1, 2, n), (2, 0, few), (2, 3, 200)]).surface
+    seen_by_third = replace(seen_by_third, seams=apart.seams)
+    assert not merged_mask_segments(seen_by_third, view3, instance3, config).any()
+    # A segment under the mask that also lands mostly on a segment of a third view is not taken
+    # from the mask's side: its own landings there say which rock it is.
+    view, instance = np.array([0, 0, 1, 2]), np.array([1, 2, 1, 1])
+    surface = _graph(view, instance, [[0, n, n], [0, n, 0], [5, 0, 0], [n, 0, 0]],
+                     [(0, 2, n), (0, 3, n), (1, 2, n), (2, 0, 5), (3, 0, n)]).surface
+    third = replace(surface, seams=Seams(none, none, none, np.zeros(0), np.zeros(0), views_read=np.array([0])))
+    assert not merged_mask_segments(third, view, instance, config).any()
+    without_third = replace(third, on_mask=third.on_mask * (np.arange(3) < 2), hit_source=third.hit_source[[0, 2, 3]],
+                            hit_target=third.hit_target[[0, 2, 3]], hit_count=third.hit_count[[0, 2, 3]])
+    assert merged_mask_segments(without_third, view, instance, config).tolist() == [False, False, True, False]
+
+
 def test_merge_share_is_validated():
     assert ShadowCorrConfig(fusion_merge_share=0).fusion_merge_share == 0
     for bad in (-0.1, 0.6):  # two segments cannot each take more than half of the landings
