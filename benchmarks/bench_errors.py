@@ -36,7 +36,6 @@ labels are made.  Nothing here is timed.
 from __future__ import annotations
 
 import argparse
-import multiprocessing as mp
 import os
 import platform
 import sys
@@ -77,44 +76,31 @@ def classify(truth: np.ndarray, labels: np.ndarray, view: np.ndarray, wrong: np.
     out = []
     for k in np.flatnonzero(wrong):
         rock, obj = int(truth[k]), int(labels[k])
-        members = np.flatnonzero(labels == obj)
         if main_rock.get(obj) == rock:  # its object is its rock's, but not the rock's main one
             in_main = (labels == main_object[rock]) & (view == view[k])
             out.append("piece_own_view" if in_main.any() else "piece_other_views")
         elif main_object[rock] == obj:  # its rock's main object belongs to another rock
-            drawn = drawn_over_rocks[members]
+            drawn = (labels == obj) & drawn_over_rocks  # the object's masks drawn over several rocks
             if not drawn.any():
                 out.append("chained")
             else:
-                out.append("merged_found" if read_as_merged[members][drawn].any() else "merged_missed")
+                out.append("merged_found" if read_as_merged[drawn].any() else "merged_missed")
         else:
             out.append("joined_wrong")
     return out
 
 
-_MODEL = None
-
-
-def _init_worker() -> None:
-    global _MODEL
-    import torch
-
-    import shadowcorr
-
-    torch.set_num_threads(1)
-    _MODEL = shadowcorr.load_model()
-
-
-def run_task(task: Any) -> list[dict[str, Any]]:
-    """Every condition of one quality-benchmark task: its wrong segments with their classes."""
+def run_task(task: Any) -> Any:
+    """Every condition of one quality-benchmark task: its wrong segments with their classes, as
+    the task's records (run by ``bench_quality.evaluate``, with the model its workers load)."""
     from shadowcorr import ShadowCorrConfig, assign, prepare
     from shadowcorr.stages import embed, group_by_evidence
 
     config = ShadowCorrConfig()
-    records = []
+    records = task.records
     for name, _, _, clean, bundle, merged in bench_quality.task_bundles(task):
         scene = prepare(bundle, config)
-        (embeddings,) = embed(_MODEL, [scene])
+        (embeddings,) = embed(bench_quality._MODEL, [scene])
         read_as_merged = group_by_evidence(scene, embeddings, config).merged
         result = assign(scene, embeddings, config)
         truth = bench_quality.segment_truth(bundle, result, clean, merged, config)
@@ -130,7 +116,7 @@ def run_task(task: Any) -> list[dict[str, Any]]:
                             "support": result.segments[k].support})
         records.append({"condition": name, "scene": task.scene_index, "segments": int(labels.size),
                         "scored_points": int(points[truth >= 0].sum())})
-    return records
+    return task
 
 
 def table(records: list[dict[str, Any]], conditions: list[Any]) -> str:
@@ -183,19 +169,12 @@ def main(argv: list[str] | None = None) -> int:
     records: list[dict[str, Any]] = []
     t0 = time.perf_counter()
 
-    def done(found: list[dict[str, Any]], task: Any) -> None:
-        records.extend(found)
+    def done(task: Any) -> None:
+        records.extend(task.records)
         finished = sum(1 for r in records if "segments" in r)
         print(f"  [{finished}] {task.rig} scene {task.scene_index} ({time.perf_counter() - t0:.0f} s)", flush=True)
 
-    if args.workers <= 1:
-        _init_worker()
-        for task in tasks:
-            done(run_task(task), task)
-    else:
-        with mp.get_context("spawn").Pool(args.workers, initializer=_init_worker) as pool:
-            for task, found in zip(tasks, pool.imap(run_task, tasks)):
-                done(found, task)
+    bench_quality.evaluate(tasks, args.workers, None, 1, done, run=run_task)
     if args.show:
         for r in sorted((r for r in records if "class" in r), key=lambda r: (r["condition"], r["scene"], r["segment"])):
             print(f"{r['condition']} scene {r['scene']} segment {r['segment']} ({r['view']}, {r['points']} points, "

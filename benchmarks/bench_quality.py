@@ -561,16 +561,19 @@ def build_tasks(conditions: list[Condition], methods: list[str], scenes: dict[st
 
 
 def evaluate(tasks: list[Task], workers: int, model_path: str | None, threads: int,
-             on_done: Callable[[Task], None]) -> None:
-    """Run the tasks (in a spawned process pool when ``workers`` > 1), largest first."""
+             on_done: Callable[[Task], None], run: Callable[[Task], Task] | None = None) -> None:
+    """Run the tasks (in a spawned process pool when ``workers`` > 1), largest first: ``run``
+    (default :func:`run_task`; a module-level function, which reads the worker's ``_MODEL``) fills
+    each task's records."""
+    run = run or run_task
     tasks = sorted(tasks, key=lambda t: -len(t.conditions) * t.views)  # cost grows with runs and views
     if workers <= 1:
         _init_worker(model_path, threads)
         for t in tasks:
-            on_done(run_task(t))
+            on_done(run(t))
         return
     with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(model_path, threads)) as pool:
-        for t in pool.imap_unordered(run_task, tasks):
+        for t in pool.imap_unordered(run, tasks):
             on_done(t)
 
 

@@ -677,13 +677,12 @@ def _merged_masks(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndarr
     spread = (hits >= config.projection_min_points) & (hits >= config.fusion_merge_share * landed)
     # Where m lands too rarely in every other view to read how it spreads there (two cameras that
     # share only the rocks' rims), the segments that land mostly on m, and on no segment of a third
-    # view, are m's candidates too.
-    elsewhere = surface.on_mask.copy()
-    elsewhere[np.arange(s), view] = 0
-    rarely_seen = (elsewhere < _MERGE_FEW_LANDINGS).all(axis=1)
+    # view, are m's candidates too.  (A segment never lands in its own view: on_mask is 0 there.)
+    rarely_seen = (surface.on_mask < _MERGE_FEW_LANDINGS).all(axis=1)
+    in_one_view = (mostly >= 0).sum(axis=1) == 1
     covered, seen_in = np.nonzero(mostly >= 0)
     over = mostly[covered, seen_in]
-    reverse = rarely_seen[over] & ((mostly[covered] >= 0).sum(axis=1) == 1)
+    reverse = rarely_seen[over] & in_one_view[covered]
     pair = np.unique(np.r_[a[spread], over[reverse]] * s + np.r_[t[spread], covered[reverse]])
     a, t = pair // s, pair % s
     key = a * (int(view.max()) + 1) + view[t]  # per (m, view j): the segments m spreads over
