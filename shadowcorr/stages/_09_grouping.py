@@ -647,7 +647,12 @@ def merged_mask_segments(surface: SurfaceEvidence, view: np.ndarray, instance: n
     -> 96.67); ``real:04`` under ``mild`` / ``field`` errors 98.98 / 98.99 -> 99.09 / 99.12,
     ``syn:2v-opposite+field`` 98.77 -> 98.93, +0.38 over the rows together; no row without
     combined errors moves.  With few landings asked of view j alone, ``syn:4v+harsh`` lost 0.08
-    (+0.34 together); without the third-view condition, ``syn:4v-low+mild`` lost 0.13.  What
+    (+0.34 together); without the third-view condition, ``syn:4v-low+mild`` lost 0.13.  A mask
+    over three rocks, or over a large rock and a small one, leaves the smaller ones less than
+    ``fusion_merge_share`` of its landings and is missed; a lower share did not pay on the 39
+    combined-error rows (same benchmark): 0.15 nets -0.08 over them (15 rows gain, 13 lose),
+    0.10 nets -0.40 (``real:all8+field`` -0.11), and 0.10 only for pairs that a third view sees
+    apart nets -0.28 (10 gain, 12 lose).  What
     counting landings cannot tell apart: a rock cut the same way in two views and whole in a
     third looks exactly like two rocks merged in that third view (measured: 4 such segments
     flagged in 30 scenes of the quality benchmark's 20 % line splits, about 2,000 segments, and
