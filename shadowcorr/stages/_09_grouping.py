@@ -652,7 +652,11 @@ def merged_mask_segments(surface: SurfaceEvidence, view: np.ndarray, instance: n
     ``fusion_merge_share`` of its landings and is missed; a lower share did not pay on the 39
     combined-error rows (same benchmark): 0.15 nets -0.08 over them (15 rows gain, 13 lose),
     0.10 nets -0.40 (``real:all8+field`` -0.11), and 0.10 only for pairs that a third view sees
-    apart nets -0.28 (10 gain, 12 lose).  What
+    apart nets -0.28 (10 gain, 12 lose).  In three of the runs that lost most, the masks that rule
+    added were true merges, but with all their landings gone the rock a mask is mostly over
+    joined a neighbour (``real:all8+field``: two rocks became one object); taking out only the
+    small rock's landings on the mask, and keeping the mask's other evidence, nets -0.16 (4 gain,
+    6 lose, at most 0.08).  What
     counting landings cannot tell apart: a rock cut the same way in two views and whole in a
     third looks exactly like two rocks merged in that third view (measured: 4 such segments
     flagged in 30 scenes of the quality benchmark's 20 % line splits, about 2,000 segments, and
