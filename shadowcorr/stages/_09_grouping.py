@@ -652,15 +652,14 @@ def merged_mask_segments(surface: SurfaceEvidence, view: np.ndarray, instance: n
     ``fusion_merge_share`` of its landings and is missed; a lower share did not pay on the 39
     combined-error rows (same benchmark): 0.15 nets -0.08 over them (15 rows gain, 13 lose),
     0.10 nets -0.40 (``real:all8+field`` -0.11), and 0.10 only for pairs that a third view sees
-    apart nets -0.28 (10 gain, 12 lose).  In three of the runs that lost most, the masks that rule
-    added were true merges, but with all their landings gone the rock a mask is mostly over
-    joined a neighbour (``real:all8+field``: two rocks became one object); taking out only the
-    small rock's landings on the mask, and keeping the mask's other evidence, nets -0.16 (4 gain,
-    6 lose, at most 0.08).  What
-    counting landings cannot tell apart: a rock cut the same way in two views and whole in a
-    third looks exactly like two rocks merged in that third view (measured: 4 such segments
-    flagged in 30 scenes of the quality benchmark's 20 % line splits, about 2,000 segments, and
-    no purity lost).  Ground truth is not read: mask ids
+    apart nets -0.28 (10 gain, 12 lose).  In three of the runs that lost most, the masks that
+    rule added were true merges, but with all their landings gone the rock a mask is mostly
+    over joined a neighbour (``real:all8+field``: two rocks became one object); taking out only
+    the small rock's landings on the mask, and keeping the mask's other evidence, nets -0.16
+    (4 gain, 6 lose, at most 0.08).  What counting landings cannot tell apart: a rock cut the
+    same way in two views and whole in a third looks exactly like two rocks merged in that
+    third view (measured: 4 such segments flagged in 30 scenes of the quality benchmark's 20 %
+    line splits, about 2,000 segments, and no purity lost).  Ground truth is not read: mask ids
     are compared only within their own view.
     """
     return _merged_masks(surface, view, instance, config)[0]
@@ -688,8 +687,9 @@ def _merged_masks(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndarr
     # share only the rocks' rims), the segments that land mostly on m, and on no segment of a third
     # view, are m's candidates too.  (A segment never lands in its own view: on_mask is 0 there.)
     rarely_seen = (surface.on_mask < _MERGE_FEW_LANDINGS).all(axis=1)
-    in_one_view = (mostly >= 0).sum(axis=1) == 1
-    covered, seen_in = np.nonzero(mostly >= 0)
+    lands_mostly = mostly >= 0
+    in_one_view = lands_mostly.sum(axis=1) == 1
+    covered, seen_in = np.nonzero(lands_mostly)
     over = mostly[covered, seen_in]
     reverse = rarely_seen[over] & in_one_view[covered]
     pair = np.unique(np.r_[a[spread], over[reverse]] * s + np.r_[t[spread], covered[reverse]])
