@@ -12,8 +12,8 @@ from shadowcorr import ShadowCorrConfig, correspond, load_model, prepare
 from shadowcorr.bundle import SceneBundle
 from shadowcorr.stages import (
     Seams, SegmentGraph, SurfaceEvidence, agglomerate, extract_segments, join_isolated, join_nearest_surface,
-    link_components,
-    merged_mask_segments, sample_segment_points, segment_confidence, split_mask_ids, surface_evidence, without_landings_on,
+    link_components, merged_mask_segments, sample_segment_points, segment_confidence, split_mask_ids, surface_evidence,
+    thin_cover_pairs, without_landings, without_landings_on,
 )
 
 from shadowcorr.stages._09_grouping import _group_links, _Groups, _initial_heap, _merged_masks
@@ -303,6 +303,50 @@ def test_a_merged_mask_that_sees_little_of_the_other_view_is_found_from_the_segm
     without_third = replace(third, on_mask=third.on_mask * (np.arange(3) < 2), hit_source=third.hit_source[[0, 2, 3]],
                             hit_target=third.hit_target[[0, 2, 3]], hit_count=third.hit_count[[0, 2, 3]])
     assert merged_mask_segments(without_third, view, instance, config).tolist() == [False, False, True, False]
+
+
+def test_a_small_rock_under_a_mask_mostly_over_its_neighbour_gives_up_its_landings_there():
+    """Mask 2 of view 1 is mostly over rock P and also over a small rock Q: Q's segments take 30 of
+    its 200 landings in views 0 and 2 (15 %, under fusion_merge_share), P's the rest; both land
+    mostly on it, and each of views 0 and 2 sees P and Q apart, so Q's landings on the mask are
+    no evidence, while the mask is no merged mask (it stays with P)."""
+    view, instance = np.array([0, 0, 1, 2, 2]), np.array([1, 2, 1, 1, 2])
+    n = 100
+
+    def scene(small: int, total: int = 200):
+        on_mask = [[0, n, n], [0, n, n], [total, 0, total], [n, n, 0], [n, n, 0]]
+        hits = [(0, 2, n), (0, 3, n), (1, 2, n), (1, 4, n), (2, 0, total - small), (2, 1, small),
+                (2, 3, total - small), (2, 4, small), (3, 0, n), (3, 2, n), (4, 1, n), (4, 2, n)]
+        surface = _graph(view, instance, on_mask, hits).surface
+        # P and Q do not touch in views 0 and 2, whose masks were read: two objects for those views too.
+        none = np.zeros(0, dtype=np.int64)
+        return replace(surface, seams=Seams(none, none, none, np.zeros(0), np.zeros(0), views_read=np.array([0, 2])))
+
+    config = ShadowCorrConfig(method="fused")
+    surface = scene(30)
+    touching = replace(surface, seams=replace(surface.seams, touching_first=np.array([0, 3]),
+                                              touching_second=np.array([1, 4])))
+    # Touching on one surface in their own views, they could be a rock that views 0 and 2 both cut.
+    assert thin_cover_pairs(touching, view, instance, config)[0].size == 0
+    assert not merged_mask_segments(surface, view, instance, config).any()
+    small, under = thin_cover_pairs(surface, view, instance, config)
+    assert sorted(zip(small.tolist(), under.tolist())) == [(1, 2), (4, 2)]
+    # With a quarter of the landings each, the mask is a merged mask, and all its landings go.
+    assert merged_mask_segments(scene(50), view, instance, config).tolist() == [False, False, True, False, False]
+    assert thin_cover_pairs(scene(50), view, instance, config)[0].size == 0
+    # Under a tenth of them (25 of 300), Q's landings stay evidence.
+    assert thin_cover_pairs(scene(25, total=300), view, instance, config)[0].size == 0
+    # Without the third view nothing tells the small rock from a piece of P that view 0 cut off.
+    seen = ~np.isin(surface.hit_source, [3, 4]) & ~np.isin(surface.hit_target, [3, 4])
+    two_views = replace(surface, on_mask=surface.on_mask * (np.arange(3) < 2), hit_source=surface.hit_source[seen],
+                        hit_target=surface.hit_target[seen], hit_count=surface.hit_count[seen])
+    assert thin_cover_pairs(two_views, view, instance, config)[0].size == 0
+    # The landings taken out: Q's on the mask, hits and trials; the mask's own and P's stay.
+    gone = np.isin(surface.hit_source * 5 + surface.hit_target, small * 5 + under)
+    out = without_landings(surface, view, gone)
+    assert [(a, t) for a, t in zip(out.hit_source.tolist(), out.hit_target.tolist()) if t == 2] == [(0, 2), (3, 2)]
+    assert out.on_mask[1].tolist() == [0, 0, n] and out.on_mask[4].tolist() == [n, 0, 0]
+    assert out.on_mask[0].tolist() == surface.on_mask[0].tolist()
 
 
 def test_merge_share_is_validated():

@@ -97,6 +97,8 @@ _EXPORTS = {
     "support_calibration": "_09_support",
     "support_features": "_09_support",
     "split_mask_ids": "_09_grouping",
+    "thin_cover_pairs": "_09_grouping",
+    "without_landings": "_09_grouping",
     "without_landings_on": "_09_grouping",
     "cluster_voxels": "_09_clustering",
     "majority_vote": "_09_clustering",
@@ -138,7 +140,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._09_clustering import cluster_voxels, majority_vote, mean_shift, merge_small_clusters
     from ._09_grouping import (
         EvidenceGroups, SegmentGraph, agglomerate, group_by_evidence, join_isolated, join_nearest_surface, link_components,
-        merged_mask_segments, segment_confidence, split_mask_ids, without_landings_on,
+        merged_mask_segments, segment_confidence, split_mask_ids, thin_cover_pairs, without_landings,
+        without_landings_on,
     )
     from ._09_support import (SUPPORT_FEATURES, SupportCalibration, SupportTrees, segment_support, support_calibration,
                               support_features)
