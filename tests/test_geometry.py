@@ -251,3 +251,30 @@ def test_boxes_never_smaller_than_their_points():
         assert np.all(np.abs(local) <= size[obj] / 2 + 1e-9)
         assert np.all(size[:, 0] >= size[:, 1])
         np.testing.assert_allclose(np.linalg.det(rotation), 1.0)
+
+
+def test_geometry_benchmark_finds_a_rock_mesh_inside_and_sorts_its_volume():
+    """bench_geometry's inside-mesh test (a generalised winding number) and its volume budget: a
+    lattice counted inside a generated rock gives the mesh's own volume, and the budget's shares of
+    a rock's volume are shares."""
+    from shadowcorr.synth.rocks import make_rock
+
+    from .harness import load_benchmark
+
+    bench = load_benchmark("bench_geometry")
+    rock = make_rock(np.random.default_rng(3), 40.0, subdivisions=3)
+    step = 2.0
+    axes = [np.arange(lo, hi, step) + step / 2 for lo, hi in zip(rock.vertices.min(0), rock.vertices.max(0))]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    inside = bench.inside_mesh(grid, rock.vertices[rock.faces])
+    assert inside.sum() * step ** 3 == pytest.approx(rock.volume, rel=0.03)
+    assert not bench.inside_mesh(np.array([[0.0, 0.0, 100.0], rock.vertices.max(0) + 1.0]),
+                                 rock.vertices[rock.faces]).any()
+    scene = synthesize(SynthConfig(renderer="raster", n_rocks=(6, 6)), 7)
+    bundle = scene.bundle
+    prepared, result = bench.labelled(bundle, ShadowCorrConfig())
+    rows = [r for r in bench.compare(scene, bundle, result, 0) if r["views"] >= 3]
+    budget = bench.volume_budget(scene, bundle, prepared, result, rows[0], ShadowCorrConfig())
+    shares = [budget[k] for k in ("unreached", "one_view", "ruled_out", "other")]
+    assert all(0.0 <= x <= 1.0 for x in shares) and sum(shares) <= 1.0 + 1e-9
+    assert budget["outside"] >= 0.0
