@@ -48,7 +48,7 @@ import numpy as np
 
 from shadowcorr import ShadowCorrConfig, __version__, assign, embed, load_model, prepare
 from shadowcorr.bundle import unit_scale
-from shadowcorr.ops import NOISE_ROW_STEP, relative_depth_noise
+from shadowcorr.ops import NOISE_ROW_STEP, pack_cell_keys, relative_depth_noise
 from shadowcorr.config import NETWORK_METHODS
 from shadowcorr.stages import baseline_embeddings, oriented_boxes
 from shadowcorr.stages._05_occupancy import _background_counts
@@ -197,16 +197,11 @@ def volume_budget(scene, bundle, prepared, result, row: dict, config: ShadowCorr
     background = _background_counts(views, points, np.zeros((1, 3)), reach, noise, smoothed,
                                     config.volume_mask_margin)[:, 0]
     cell = np.floor(points / scale + 0.5).astype(np.int64)  # a sample's voxel (centre = cell * scale)
-    span = 1 << 20
-
-    def key(c: np.ndarray) -> np.ndarray:
-        return ((c[:, 0] + span) * 2 * span + c[:, 1] + span) * 2 * span + c[:, 2] + span
-
-    occ_key = key(occupancy.cell)
+    both, _ = pack_cell_keys(np.zeros(occupancy.cell.shape[0] + cell.shape[0]), np.concatenate([occupancy.cell, cell]))
+    occ_key, sample_key = both[:occupancy.cell.shape[0]], both[occupancy.cell.shape[0]:]
     order = np.argsort(occ_key)
-    at = np.clip(np.searchsorted(occ_key[order], key(cell)), 0, occ_key.size - 1)
-    index = order[at]
-    in_occupancy = occ_key[index] == key(cell)
+    index = order[np.clip(np.searchsorted(occ_key[order], sample_key), 0, occ_key.size - 1)]
+    in_occupancy = occ_key[index] == sample_key
     ruled_out = (background < 0) | (background >= 2)
     seg_object = np.array([s.object for s in result.segments])
     owner = np.where(in_occupancy, seg_object[occupancy.segment[index]], -1)
