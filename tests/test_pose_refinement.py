@@ -140,7 +140,7 @@ def test_a_depth_window_averages_one_surface_and_keeps_edges_and_holes():
     from shadowcorr.stages._01_registration import depth_on_grid
 
     rng = np.random.default_rng(0)
-    plane = np.full((60, 60), 500.0) + rng.normal(0.0, 5.0, (60, 60))
+    plane = (np.full((60, 60), 500.0) + rng.normal(0.0, 5.0, (60, 60))).astype(np.float32)  # as bundles hold depth
     plane[:, 30:] += 300.0  # a depth edge between columns 29 and 30
     plane[0:10, 0:10] = 0.0  # a hole
     one = depth_on_grid(plane, 10, 1, 10_000.0)

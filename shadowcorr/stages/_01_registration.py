@@ -132,11 +132,15 @@ def depth_on_grid(depth: np.ndarray, stride: int, window: int, max_depth: float)
     neighbours of a sample on the same surface divides independent depth noise by up to the
     window's width (a 5 x 5 window: 5 times) at no cost in resolution, while neighbours across a
     depth edge (another surface) and invalid ones stay out.  An invalid sample stays invalid.
+    ``depth`` is read in float32, as a bundle holds it (float32 or float16).
     """
     height, width = depth.shape
     n_rows, n_cols = len(range(stride // 2, height, stride)), len(range(stride // 2, width, stride))
+    # Bundle depth is float32 or float16, so every value is exact in float32: the tests below run on
+    # it at half the memory traffic of float64 and decide as float64 would (see _at_most).
+    depth = np.asarray(depth, dtype=np.float32)
     if n_rows * stride > height or n_cols * stride > width:  # a partial last block: NaN beyond the image
-        padded = np.full((max(n_rows * stride, height), max(n_cols * stride, width)), np.nan)
+        padded = np.full((max(n_rows * stride, height), max(n_cols * stride, width)), np.nan, dtype=np.float32)
         padded[:height, :width] = depth
         depth = padded
     # (sample row, row in its block, sample column, column in its block): a view, no copy; the
@@ -148,21 +152,33 @@ def depth_on_grid(depth: np.ndarray, stride: int, window: int, max_depth: float)
     reach = (min(window, stride) - 1) // 2
     if reach == 0:
         return centre
-    tolerance = _WINDOW_EDGE_SHARE * centre
     # Every window pixel of every sample, read once into (row offset, column offset, sample row,
     # sample column) order: the strided reads fetch a window row's pixels together, and each offset's
     # samples are then one contiguous (h, w) plane.
     span = slice(half - reach, half + reach + 1)
-    window_depth = np.ascontiguousarray(blocks[:, span, :, span].transpose(1, 3, 0, 2), dtype=np.float64)
+    window_depth = np.ascontiguousarray(blocks[:, span, :, span].transpose(1, 3, 0, 2))
+    centre32 = centre.astype(np.float32)
     with np.errstate(invalid="ignore"):
-        # within a tenth of a valid centre's depth, so positive; False where either is NaN
-        same = (np.abs(window_depth - centre) <= tolerance) & (window_depth <= max_depth)
+        # within a tenth of a valid centre's depth, so positive; False where either is NaN.  Between
+        # float32 values within a factor of two of each other the difference is exact (Sterbenz), and
+        # one further apart differs by more than a tenth in any rounding: float64 would decide the same.
+        same = (np.abs(window_depth - centre32) <= _at_most(_WINDOW_EDGE_SHARE * centre)) \
+            & (window_depth <= _at_most(np.float64(max_depth)))
+    # The kept values lie within a tenth of the centre's depth (two binades at most): their float64 sum
+    # is exact, in any order.
     total = np.zeros_like(centre)
-    for dr in range(2 * reach + 1):  # one offset after the other: the sums' rounding does not depend on the layout
+    for dr in range(2 * reach + 1):
         for dc in range(2 * reach + 1):
             np.add(total, window_depth[dr, dc], out=total, where=same[dr, dc])
-    count = same.sum(axis=(0, 1))
+    count = same.view(np.uint8).sum(axis=(0, 1), dtype=np.uint16)  # bytes summed: several times a bool sum's speed
     return np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
+
+
+def _at_most(bound: np.ndarray | np.float64) -> np.ndarray:
+    """The largest float32 at most ``bound`` (float64): for a float32 x, ``x <= bound`` exactly when
+    ``x <= _at_most(bound)`` (NaN stays NaN)."""
+    rounded = np.asarray(bound).astype(np.float32)
+    return np.where(rounded > bound, np.nextafter(rounded, np.float32(-np.inf)), rounded)
 
 
 def _view_grid(view: View, max_depth_bundle: float, window: int
