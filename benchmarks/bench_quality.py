@@ -844,6 +844,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     wanted = {c.name for c in conditions}
     old = [json.loads(line) for line in records_path.read_text().splitlines()] if args.resume and records_path.exists() else []
     records = [r for r in old if "error" not in r and r["condition"] in wanted and r["method"] in methods]
+    kept = len(records)
     tasks = build_tasks(conditions, methods, scenes, Path(args.real), repeats, args.seed, map(run_key, records))
     todo = sum(len(t.conditions) * len(methods) - len(t.done) for t in tasks)
     print(f"{len(conditions)} conditions x {len(methods)} methods: {todo} runs in {len(tasks)} tasks"
@@ -878,8 +879,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows = [f"{n_scenes} synthetic scenes per cell (generator seed {args.seed})"] if scenes else []
     rows += [f"the real scene's random perturbations over {repeats} seeds"] if any(
         c.rig in REAL_RIGS and c.perturbation for c in conditions) else []
+    # With --resume the wall time is this invocation's: say how many of the runs it made.
+    made = f" for the {len(records) - kept} runs not kept from an earlier invocation ({kept} kept)" if kept else ""
     header = (f"Quality benchmark: `{command.strip()}`  \n{', '.join(rows + ['mean ± std'])}.  \n"
-              f"Evaluation {t_end - t_generated:.0f} s wall with {args.workers} worker(s) "
+              f"Evaluation {t_end - t_generated:.0f} s wall{made} with {args.workers} worker(s) "
               f"({cpu:.0f} CPU s in the method calls of all {len(records)} runs: {cpu / args.workers:.0f} s "
               f"on {args.workers} idle cores), generation {t_generated - t_start:.0f} s\n\n")
     (out / "table.md").write_text(header + table)
