@@ -136,7 +136,7 @@ def depth_on_grid(depth: np.ndarray, stride: int, window: int, max_depth: float)
     """
     height, width = depth.shape
     n_rows, n_cols = len(range(stride // 2, height, stride)), len(range(stride // 2, width, stride))
-    # Bundle depth is float32 or float16, so every value is exact in float32: the tests below run on
+    # Bundle depth is float32 or float16, so every value is exact in float32: the comparisons below run on
     # it at half the memory traffic of float64 and decide as float64 would (see _at_most).
     depth = np.asarray(depth, dtype=np.float32)
     if n_rows * stride > height or n_cols * stride > width:  # a partial last block: NaN beyond the image
