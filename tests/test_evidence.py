@@ -16,7 +16,8 @@ from shadowcorr.stages import (
     thin_cover_pairs, without_landings, without_landings_on,
 )
 
-from shadowcorr.stages._09_grouping import _group_links, _Groups, _initial_heap, _merged_masks
+from shadowcorr.stages._09_grouping import (_group_links, _Groups, _initial_heap, _merged_masks,
+                                            _segment_group_linkage)
 
 from .scenes import sphere_scene
 from .test_engine import FIELD_CENTRES, FIELD_RADII, same_partition
@@ -404,9 +405,11 @@ def test_a_merged_mask_does_not_chain_a_rock_that_lands_mostly_on_it():
     assert labels[0] == labels[1] == labels[4] and labels[2] == labels[3] and labels[0] != labels[2]
 
 
-def _random_graph(seed: int, s: int = 40, unsure: bool = False) -> SegmentGraph:
+def _random_graph(seed: int, s: int = 40, unsure: bool = False, moved: bool = False) -> SegmentGraph:
     """Random evidence among ``s`` segments of 4 views; some pairs share a view and a mask id; with
-    ``unsure``, mask ids 1 and 2, and 3 and 4, of a view share a loose id (their seams decide nothing)."""
+    ``unsure``, mask ids 1 and 2, and 3 and 4, of a view share a loose id (their seams decide nothing);
+    with ``moved`` as well, a quarter of the segments take a random loose id of their own, as one
+    blob of a mask does through its own unsure seam."""
     rng = np.random.default_rng(seed)
     view, instance = rng.integers(0, 4, s), rng.integers(1, 6, s)
     on_mask = rng.integers(0, 300, (s, 4)) * (view[:, None] != np.arange(4))
@@ -415,13 +418,18 @@ def _random_graph(seed: int, s: int = 40, unsure: bool = False) -> SegmentGraph:
     volume = [(a, b, float(rng.uniform(-1, 1)), float(rng.uniform(0, 2)))
               for a, b in {(min(a, b), max(a, b)) for a, b in rng.integers(0, s, (2 * s, 2)) if a != b}]
     graph = _graph(view.tolist(), instance.tolist(), on_mask, hits, volume)
-    return replace(graph, loose=(instance + 1) // 2) if unsure else graph
+    if not unsure:
+        return graph
+    loose = (instance + 1) // 2
+    if moved:
+        loose = np.where(rng.random(s) < 0.25, rng.integers(1, 4, s), loose)
+    return replace(graph, loose=loose)
 
 
-@pytest.mark.parametrize("unsure", [False, True])
-def test_the_first_linkages_computed_at_once_equal_those_of_the_merge_loop(unsure):
+@pytest.mark.parametrize("unsure, moved", [(False, False), (True, False), (True, True)])
+def test_the_first_linkages_computed_at_once_equal_those_of_the_merge_loop(unsure, moved):
     s = 40
-    graph = _random_graph(3, s, unsure)
+    graph = _random_graph(3, s, unsure, moved)
     config = ShadowCorrConfig(method="fused")
     groups = _Groups(graph, config)
     heap = _initial_heap(graph, config)
@@ -448,12 +456,13 @@ def _scalar_links(graph: SegmentGraph, labels: np.ndarray, x: int, config: Shado
     return {label_of[other]: groups.linkage(x, other) for other in groups.edges[x]}
 
 
-@pytest.mark.parametrize("seed, unsure", [(3, False), (4, False), (4, True)])
-def test_the_confidence_summarises_the_linkage_of_the_merge_loop(seed, unsure):
+@pytest.mark.parametrize("seed, unsure, moved", [(3, False, False), (4, False, False), (4, True, False),
+                                                 (4, True, True)])
+def test_the_confidence_summarises_the_linkage_of_the_merge_loop(seed, unsure, moved):
     # Random groups of random evidence: per segment, the vectorised linkage to its own group and
     # to the best other one equals the merge loop's, and the confidence is their logistic margin.
     s = 40
-    graph = _random_graph(seed, s, unsure)
+    graph = _random_graph(seed, s, unsure, moved)
     config = ShadowCorrConfig(method="fused")
     labels = np.random.default_rng(seed).integers(0, 9, s)
     labels[:3] = 20 + np.arange(3)  # three segments alone
@@ -677,6 +686,26 @@ def test_an_unsure_seam_neither_joins_nor_parts_the_pair_in_its_view():
     assert groups.constraints(rock, 1) == (0.0, 0.0)  # a piece of one view against two views: neither share
     apart_groups = _Groups(apart, config)
     assert apart_groups.constraints(apart_groups.merge(0, 2), 1) == (0.0, 1.0)
+
+
+def test_a_blob_with_a_loose_id_of_its_own_still_agrees_with_its_mask():
+    """Mask 5 of view 0 falls into blobs 0 and 1; an unsure seam with segment 3 (mask 2 of view 0)
+    gave blob 1 alone the loose id 2.  Segment 2 (view 1) sees the rock whole.  Blob 1 against the
+    group of blob 0 and segment 2 (two views): view 0's ids agree, so it joins them and does not
+    part them as well; a group holding segment 3 (a different id and loose id) is still parted."""
+    config = ShadowCorrConfig(method="fused")
+    view, instance = [0, 0, 1, 0], [5, 5, 1, 2]
+    on_mask = [[0, 100], [0, 10], [100, 0], [0, 50]]
+    hits = [(0, 2, 90), (1, 2, 8), (2, 0, 80), (2, 1, 6)]
+    graph = replace(_graph(view, instance, on_mask, hits), loose=np.array([5, 2, 1, 2]))
+    groups = _Groups(graph, config)
+    rock = groups.merge(0, 2)
+    assert groups.constraints(rock, 1) == (1.0, 0.0)
+    assert groups.constraints(groups.merge(rock, 3), 1) == (0.0, 1.0)
+    links = _segment_group_linkage(graph, np.array([0, 1, 0, 2]), config)
+    (at,) = np.flatnonzero((links.segment == 1) & (links.group == 0))
+    fresh = _Groups(graph, config)
+    assert links.value[at] == fresh.linkage(fresh.merge(0, 2), 1) > 0
 
 
 def test_a_view_whose_pose_refinement_could_not_verify_lands_within_the_wider_depth_tolerance(field):

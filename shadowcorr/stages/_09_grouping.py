@@ -90,7 +90,9 @@ class SegmentGraph:
     # a seam too short to read, then joins the rest of its rock on what the other views show
     # instead of staying alone.  Between two groups of one view each (nothing else speaks for
     # either) or of several views each (two whole rocks touching at one depth, which under noisy
-    # depth all their seams leave unsure), the ids differ as before.  None: the same as ``instance``.
+    # depth all their seams leave unsure), the ids differ as before.  Where the ids agree, the view
+    # joins the groups whatever these say (the pairs join segments, so one blob of a mask can take
+    # another loose id than its mask's other blobs).  None: the same as ``instance``.
     loose: np.ndarray | None = None
 
     @property
@@ -199,7 +201,10 @@ class _Groups:
         one_view_g, one_view_h = len(self.views[g]) == 1, len(self.views[h]) == 1
         loose_g, loose_h = (self.view_loose[g], self.view_loose[h]) if one_view_g != one_view_h else (ids_g, ids_h)
         agree = sum(1 for v in shared if len(ids_g[v] | ids_h[v]) == 1)
-        differ = sum(1 for v in shared if len(loose_g[v] | loose_h[v]) > 1)  # the rest: unsure, neither
+        # A view parts g and h where their ids differ and their loose ids do too (the rest: unsure,
+        # neither).  Both: a pair joins segments, so an unsure seam of one blob of a mask gives that
+        # blob alone another loose id, and the blobs of a mask must not differ where their ids agree.
+        differ = sum(1 for v in shared if len(ids_g[v] | ids_h[v]) > 1 and len(loose_g[v] | loose_h[v]) > 1)
         return agree / len(shared), differ / len(shared)
 
     def linkage(self, g: int, h: int) -> float:
@@ -359,7 +364,7 @@ def _segment_group_linkage(graph: SegmentGraph, group: np.ndarray, config: Shado
     agree = ((same > 0) & (same == others)).astype(np.float64)
     # The lone segment lies in one view: unsure neighbours count as neither where the group spans several.
     same_loose = np.where((present > 0).sum(axis=1) > 1, same_loose, same)
-    differ = (others - same_loose > 0).astype(np.float64)
+    differ = ((others - same > 0) & (others - same_loose > 0)).astype(np.float64)  # as _Groups.constraints
     pairs = np.bincount(group, minlength=k)[grp] - own
     value = np.where(pairs > 0, linkage(hits_out, trials_out, hits_in, trials_in, volume, mass, agree, differ,
                                         config), 0.0)
@@ -462,6 +467,11 @@ def split_mask_ids(surface: SurfaceEvidence, view: np.ndarray, instance: np.ndar
     Neighbours whose seam decides nothing (``surface.seams.unsure_first`` / ``unsure_second``)
     share a loose id: where two groups' ids differ in a view but their loose ids agree, that
     view neither joins nor parts them (:class:`SegmentGraph`).
+
+    The pairs join segments, not masks: a segment of a pair takes the smallest id of its
+    connected segments, and the other blobs of its mask keep theirs unless a pair joins them
+    too.  So an unsure seam of one blob can give it another loose id than its mask's other
+    blobs, whose ids still agree; agreeing ids join (the constraints never take both sides).
     """
     if view.size == 0:
         return instance.copy(), instance.copy()
