@@ -200,11 +200,15 @@ class _Groups:
         # (see SegmentGraph.loose); otherwise as different mask ids.
         one_view_g, one_view_h = len(self.views[g]) == 1, len(self.views[h]) == 1
         loose_g, loose_h = (self.view_loose[g], self.view_loose[h]) if one_view_g != one_view_h else (ids_g, ids_h)
-        agree = sum(1 for v in shared if len(ids_g[v] | ids_h[v]) == 1)
         # A view parts g and h where their ids differ and their loose ids do too (the rest: unsure,
         # neither).  Both: a pair joins segments, so an unsure seam of one blob of a mask gives that
         # blob alone another loose id, and the blobs of a mask must not differ where their ids agree.
-        differ = sum(1 for v in shared if len(ids_g[v] | ids_h[v]) > 1 and len(loose_g[v] | loose_h[v]) > 1)
+        agree = differ = 0
+        for v in shared:
+            if len(ids_g[v] | ids_h[v]) == 1:
+                agree += 1
+            elif len(loose_g[v] | loose_h[v]) > 1:
+                differ += 1
         return agree / len(shared), differ / len(shared)
 
     def linkage(self, g: int, h: int) -> float:
