@@ -167,6 +167,10 @@ class ShadowCorrConfig(BaseModel):
     fusion_volume_voxels: float = Field(10.0, gt=0, description="shared voxels that give a segment pair full mass")
     fusion_cannot_link: float = Field(0.6, ge=0, description="penalty times the share of the views seeing both "
                                       "groups in which they wear different mask ids")
+    fusion_cannot_link_apart: float = Field(0.5, ge=0, description="the cannot-link grows by this share of "
+                                            "itself for every view beyond the first in which the two groups' mask "
+                                            "ids differ along a seam that shows two surfaces (stage 03 apart seams)")
+    fusion_cannot_link_apart_max: float = Field(1.0, ge=0, description="... by at most this share of itself")
     fusion_same_mask: float = Field(0.5, ge=0, description="bonus times the share of the views seeing both groups "
                                     "in which they wear one mask id (blobs of one mask)")
     fusion_split_views: int = Field(2, ge=0, description="views in which two segments of one view with different "

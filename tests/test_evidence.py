@@ -708,6 +708,54 @@ def test_a_blob_with_a_loose_id_of_its_own_still_agrees_with_its_mask():
     assert links.value[at] == fresh.linkage(fresh.merge(0, 2), 1) > 0
 
 
+def test_the_cannot_link_grows_with_the_views_that_part_two_groups_along_a_depth_step():
+    """Rocks P (segments 0, 2, 4) and Q (1, 3, 5) touch and wear two masks in each of views 0, 1, 2.
+    Where their seams show two surfaces in two of the views, the cannot-link between the two whole
+    groups grows by ``fusion_cannot_link_apart`` of itself, in all three views by at most
+    ``fusion_cannot_link_apart_max``; a depth step in one view alone, or none, leaves it as it was,
+    and so does any number of them between segments that share one view at most."""
+    config = ShadowCorrConfig(method="fused")
+    view, instance = [0, 0, 1, 1, 2, 2], [1, 2, 1, 2, 1, 2]
+    on_mask = [[0, 50, 50]] * 2 + [[50, 0, 50]] * 2 + [[50, 50, 0]] * 2
+    hits = [(a, b, 40) for a, b in ((0, 2), (2, 4), (4, 0), (1, 3), (3, 5), (5, 1))] + [(0, 3, 5), (3, 0, 5)]
+    plain = _graph(view, instance, on_mask, hits)
+
+    def with_steps(pairs):
+        first, second = (np.array(x, dtype=np.int64) for x in zip(*pairs)) if pairs else (np.zeros(0, np.int64),) * 2
+        return replace(plain, surface=replace(plain.surface, seams=replace(
+            plain.surface.seams, apart_first=first, apart_second=second)))
+
+    def whole_rocks(graph):
+        groups = _Groups(graph, config)
+        p, q = groups.merge(groups.merge(0, 2), 4), groups.merge(groups.merge(1, 3), 5)
+        return groups, p, q
+
+    shares = {}
+    for name, pairs in (("none", []), ("one", [(0, 1)]), ("two", [(0, 1), (2, 3)]),
+                        ("three", [(0, 1), (2, 3), (4, 5)])):
+        groups, p, q = whole_rocks(with_steps(pairs))
+        shares[name] = groups.constraints(p, q)
+        assert groups.constraints(q, p) == shares[name]
+        # Two lone segments of one view: one shared view, nothing to grow.
+        assert _Groups(with_steps(pairs), config).constraints(0, 1) == (0.0, 1.0)
+    assert shares["none"] == shares["one"] == (0.0, 1.0)
+    assert shares["two"] == (0.0, 1.0 + config.fusion_cannot_link_apart)
+    assert shares["three"] == (0.0, 1.0 + min(2 * config.fusion_cannot_link_apart,
+                                              config.fusion_cannot_link_apart_max))
+    groups, p, q = whole_rocks(with_steps([(0, 1), (2, 3)]))
+    before, after = _Groups(plain, config), groups
+    bp, bq = before.merge(before.merge(0, 2), 4), before.merge(before.merge(1, 3), 5)
+    assert before.linkage(bp, bq) - after.linkage(p, q) == pytest.approx(
+        config.fusion_cannot_link * config.fusion_cannot_link_apart)
+    # The seams' views follow the groups through the merges in either order.
+    reverse = _Groups(with_steps([(0, 1), (2, 3)]), config)
+    q2 = reverse.merge(reverse.merge(5, 3), 1)
+    p2 = reverse.merge(reverse.merge(4, 2), 0)
+    assert reverse.constraints(p2, q2) == shares["two"]
+    off = _Groups(with_steps([(0, 1), (2, 3)]), config.with_options(fusion_cannot_link_apart=0.0))
+    assert off.constraints(off.merge(off.merge(0, 2), 4), off.merge(off.merge(1, 3), 5)) == (0.0, 1.0)
+
+
 def test_a_view_whose_pose_refinement_could_not_verify_lands_within_the_wider_depth_tolerance(field):
     # View 0 measures every depth 2 % too far, as a pose off along its rays would: beyond
     # projection_depth_tolerance_rel (1.5 %), within projection_depth_tolerance_unverified_rel (2.5 %)

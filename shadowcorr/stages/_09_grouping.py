@@ -25,7 +25,10 @@ Two ways to resolve the evidence, one per method:
     fusion_volume_prior)``, times ``fusion_volume_weight``;
   - constraints of the views: of the views that see both X and Y, the share in which they
     wear different mask ids, times ``fusion_cannot_link``, is subtracted (a segmenter rarely
-    cuts one rock in two), and the share in which they wear one mask id (blobs of one mask),
+    cuts one rock in two; it grows by ``fusion_cannot_link_apart`` of itself for every further view
+    in which a seam between them shows two surfaces, up to ``fusion_cannot_link_apart_max``: two
+    rocks that touch wear two masks along a depth step in every view that sees them meet, while a
+    cut through one rock leaves a smooth seam), and the share in which they wear one mask id (blobs of one mask),
     times ``fusion_same_mask``, is added - constraints, not rules: strong evidence from the
     other views can still join a split mask, and a tiny blob nothing else sees joins the
     other blobs of its mask.  The mask ids the constraints read come from
@@ -183,6 +186,13 @@ class _Groups:
         for a, b in zip(*(x.tolist() for x in _same_mask_pairs(graph))):
             self._edge(a, b)
             self._edge(b, a)
+        # apart[g][h]: the views in which a seam between g and h shows two surfaces (one set for both sides)
+        self.apart: list[dict[int, set[int]]] = [{} for _ in range(s)]
+        seams = graph.surface.seams
+        for a, b in zip(seams.apart_first.tolist(), seams.apart_second.tolist()):
+            views = self.apart[a].setdefault(b, set())
+            views.add(int(graph.view[a]))
+            self.apart[b][a] = views
 
     def _edge(self, g: int, h: int) -> list[float]:
         e = self.edges[g].get(h)
@@ -191,7 +201,8 @@ class _Groups:
         return e
 
     def constraints(self, g: int, h: int) -> tuple[float, float]:
-        """Shares of the views seeing both g and h in which they wear one mask id / different ones."""
+        """Shares of the views seeing both g and h in which they wear one mask id / different ones (the
+        latter grown for the views that part them along a seam of two surfaces, see the module docstring)."""
         ids_g, ids_h = self.view_ids[g], self.view_ids[h]
         shared = [v for v in ids_g if v in ids_h] if len(ids_g) <= len(ids_h) else [v for v in ids_h if v in ids_g]
         if not shared:
@@ -203,13 +214,18 @@ class _Groups:
         # A view parts g and h where their ids differ and their loose ids do too (the rest: unsure,
         # neither).  Both: a pair joins segments, so an unsure seam of one blob of a mask gives that
         # blob alone another loose id, and the blobs of a mask must not differ where their ids agree.
-        agree = differ = 0
+        agree = differ = stepped = 0
+        apart = self.apart[g].get(h, ())
         for v in shared:
             if len(ids_g[v] | ids_h[v]) == 1:
                 agree += 1
             elif len(loose_g[v] | loose_h[v]) > 1:
                 differ += 1
-        return agree / len(shared), differ / len(shared)
+                stepped += v in apart
+        # A lone segment shares one view at most with a group, so the vectorised linkage (one view) needs no growth.
+        config = self.config
+        growth = min(config.fusion_cannot_link_apart * max(stepped - 1, 0), config.fusion_cannot_link_apart_max)
+        return agree / len(shared), (1.0 + growth) * differ / len(shared)
 
     def linkage(self, g: int, h: int) -> float:
         hits_gh, hits_hg, volume, mass = self.edges[g][h]
@@ -246,6 +262,16 @@ class _Groups:
             r[1] += ho
             r[2] += volume
             r[3] += mass
+        for other, views in self.apart[h].items():
+            del self.apart[other][h]
+            if other == g:
+                continue
+            kept = self.apart[g].get(other)
+            if kept is None:
+                self.apart[g][other] = self.apart[other][g] = views
+            else:
+                kept.update(views)
+        self.apart[h] = {}
         self.edges[h] = {}
         self.version[g] += 1
         self.version[h] = -1
