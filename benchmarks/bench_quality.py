@@ -378,7 +378,7 @@ def segment_truth(bundle: Any, result: Any, clean: Any = None, merged: dict | No
     if clean is None or not merged:
         return truth
     from shadowcorr import ShadowCorrConfig
-    from shadowcorr.stages import find_blobs, majority_vote
+    from shadowcorr.stages import majority_vote, view_blobs
 
     config = config or ShadowCorrConfig()
     exact = {v.name: v for v in clean.views}
@@ -388,7 +388,7 @@ def segment_truth(bundle: Any, result: Any, clean: Any = None, merged: dict | No
         if seg.instance not in masks or truth[k] < 0:
             continue
         if seg.view not in owners:
-            blobs = find_blobs(views[seg.view].mask, config.split_components, config.min_blob_pixels)
+            blobs = view_blobs(views[seg.view], config)
             objects = _object_image(exact[seg.view], clean.ground_truth)
             on = (blobs.labels >= 0) & (objects >= 0)
             owners[seg.view] = (majority_vote(objects[on], blobs.labels[on].astype(np.int64), blobs.lengths.size)[0],

@@ -61,6 +61,11 @@ class ShadowCorrConfig(BaseModel):
     # segments
     split_components: bool = Field(True, description="split disconnected blobs of one mask value into segments")
     min_blob_pixels: int = Field(50, ge=0, description="blobs with fewer pixels are ignored")
+    depth_cut_step: float | None = Field(
+        None, ge=0, description="a blob is cut in pieces where the depth of neighbouring pixels jumps by more than "
+        "this share of the depth (and 4 standard deviations of the view's estimated depth noise), when every piece "
+        "keeps at least a tenth of its pixels: one mask drawn over two rocks, one in front of the other (see "
+        "shadowcorr.stages.cut_at_depth_steps); None: 0.02 for 'fused', 0 (no cut) for the paper's methods")
     max_segments: int = Field(5000, ge=1, description="refuse a scene with more segments (checked once they are cut)")
     max_voxels: int = Field(2_000_000, ge=1, description="refuse a scene with more consensus voxels (checked after "
                             "the consensus filter, before segment embeddings and the network)")
@@ -256,6 +261,11 @@ class ShadowCorrConfig(BaseModel):
         if value is not None:
             return value
         return fused if self.method == "fused" else paper
+
+    @property
+    def cut_step(self) -> float:
+        """``depth_cut_step`` with the method's default filled in (0: blobs are not cut)."""
+        return self._by_method(self.depth_cut_step, 0.02, 0.0)
 
     @property
     def pixel_tolerance(self) -> int:

@@ -17,7 +17,8 @@ class SegmentLabel(BaseModel):
     segment: int = Field(description="index of the segment in this result")
     view: str = Field(description="name of the view the segment was cut from")
     instance: int = Field(description="the mask value of the segment in its view")
-    component: int = Field(description="blob index within (view, instance), largest blob first")
+    component: int = Field(description="blob index within (view, instance), largest blob first; for method "
+                           "'fused' a blob that a depth step parts counts as its pieces (stage 02 depth cut)")
     num_points: int = Field(description="back-projected 3D points with valid depth")
     object: int = Field(description="object label; segments with the same label are the same physical object")
     support: float = Field(description="how sure the label is (0-1): for 'shadowcorr' and 'meanshift' the share of "

@@ -20,7 +20,8 @@ class MapSegment(BaseModel):
     scan: int = Field(description="the scan (update) that added it")
     view: str = Field(description="its view's name within that scan")
     instance: int = Field(description="its mask value in that view")
-    component: int = Field(description="blob index within (view, instance), largest first")
+    component: int = Field(description="blob index within (view, instance), largest first; for method 'fused' "
+                           "a blob that a depth step parts counts as its pieces (stage 02 depth cut)")
     num_points: int = Field(description="points the map keeps of it (averaged on the downsampling grid)")
     object: int = Field(description="its object's id; segments with one id are one physical object")
     support: float | None = Field(None, description="the calibrated support of its place when it was last placed "

@@ -286,4 +286,6 @@ def join_segments(first: Segments, second: Segments) -> Segments:
         optical_axis=np.concatenate([first.optical_axis, second.optical_axis]),
         view_names=[*first.view_names, *second.view_names],
         pixel_segment=images,
+        cut=None if first.cut is None and second.cut is None else np.concatenate(
+            [np.full(s.num_segments, -1, np.int64) if s.cut is None else s.cut for s in (first, second)]),
     )

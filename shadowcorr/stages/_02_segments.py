@@ -5,7 +5,9 @@ Each view's instance mask is cut into blobs: every instance value is split into 
 are ignored, and the pixels with valid depth are back-projected through the pinhole
 model ``((u - cx) d / fx, (v - cy) d / fy, d)`` in the OpenCV optical frame and moved
 to the world frame with the view's camera-to-world pose.  Points come out in the
-configuration's units.
+configuration's units.  For method ``fused`` a blob that a depth step parts from side to side
+(one mask drawn over a rock and the rock behind it) is first cut into its pieces
+(:func:`cut_at_depth_steps`), which stay blobs of their mask value.
 
 Segments are a ragged batch: all points concatenated, with explicit per-segment
 ``lengths`` (the PyTorch3D convention), so later stages never loop over points.
@@ -92,6 +94,9 @@ class Segments:
     # (V,) each view's relative depth noise ``a`` (sigma = a z^2; 0 without depth), measured once
     # on its image for the stages that weigh depth against it (seams, occupancy).  None: not measured.
     depth_noise: np.ndarray | None = None
+    # (S,) for the pieces of a blob cut at a depth step (stage 2, cut_at_depth_steps), that blob's index
+    # in its view before the cut, shared by its pieces; -1 for a segment not cut.  None: nothing was cut.
+    cut: np.ndarray | None = None
 
     @property
     def num_segments(self) -> int:
@@ -118,6 +123,9 @@ class Blobs:
     instance: np.ndarray  # (B,) mask value
     component: np.ndarray  # (B,) index within its instance, largest first
     bounds: tuple[int, int, int, int] = (0, 0, 0, 0)  # row and column ranges [r0, r1) x [c0, c1) holding every blob
+    # (B,) for the pieces of a blob cut at a depth step (cut_at_depth_steps), the index that blob had
+    # before the cut (one number per cut blob, shared by its pieces); -1 for a blob not cut.  None: no cut read.
+    cut: np.ndarray | None = None
 
     def label_image(self, labels: np.ndarray, fill: int = -1) -> np.ndarray:
         """(H, W) int64 image holding ``labels[b]`` on blob b's pixels and ``fill`` elsewhere."""
@@ -221,6 +229,164 @@ def find_blobs(mask: np.ndarray, split_components: bool = True, min_pixels: int 
     return Blobs(image, size[kept], ids[instance], component.astype(np.int64), bounds)
 
 
+#: Standard deviations of the depth noise of a difference of two pixels beyond which a jump is a step
+#: (:func:`cut_at_depth_steps`): about one pair in 16 000 of a smooth surface passes by chance, too few
+#: to part anything.
+CUT_NOISE = 4.0
+#: Smallest share of a blob's pixels that each piece of a cut keeps: a rock's own overhangs and
+#: the far rim of a slanted surface step inside one rock as well, over a sliver.
+CUT_MIN_SHARE = 0.1
+#: The steps are looked for on every CUT_GRID-th row and column first; a blob with one is read again
+#: at full resolution.
+CUT_GRID = 2
+
+
+def cut_at_depth_steps(blobs: Blobs, depth: np.ndarray, noise: float, step: float) -> Blobs:
+    """The blobs with each blob that a depth step parts cut into its pieces (method ``fused``).
+
+    A segmenter that draws one mask over two touching rocks, one in front of the other, leaves
+    an occlusion contour inside the mask: across it the depth jumps from the nearer rock to the
+    farther.  Such a mask is one segment to every later stage, which then has to give both rocks
+    one label.  Here two neighbouring pixels of one blob, one or two pixels apart along a row or
+    a column, are *stepped* when their depths differ by more than ``step`` of the nearer depth,
+    and by more than :data:`CUT_NOISE` standard deviations of such a difference under the view's
+    depth noise (``noise`` is ``a`` in ``sigma = a z^2``, :func:`shadowcorr.ops.relative_depth_noise`;
+    two pixels apart, a step that a sensor spreads over a mixed pixel still counts).  The pixels of
+    stepped pairs are taken out and the rest of the blob falls into 8-connected parts; where at least
+    two of them keep :data:`CUT_MIN_SHARE` of the blob's pixels each, the blob is cut: every pixel of
+    it (stepped, without depth, or of a smaller part) goes to the nearest of those parts.  Two rocks
+    that touch where the mask joins them at one depth (both resting on the ground side by side) are
+    not parted: the step must run across the whole blob.
+
+    Pieces keep the blob's mask value, are numbered as components of it (largest first) and
+    carry the blob's former index in :attr:`Blobs.cut`.  Costs one pass over the blobs on a
+    ``CUT_GRID`` grid, and a full-resolution read of the window of the blobs with a step.
+    """
+    if step <= 0 or blobs.lengths.size == 0:
+        return blobs
+    num = blobs.lengths.size
+    r0, r1, c0, c1 = blobs.bounds
+    # On the grid first (one pixel apart there is two of the frame's): only the blobs it finds in
+    # pieces are read again at full resolution.
+    grid_r0, grid_c0 = -(-r0 // CUT_GRID) * CUT_GRID, -(-c0 // CUT_GRID) * CUT_GRID
+    grid = blobs.labels[grid_r0:r1:CUT_GRID, grid_c0:c1:CUT_GRID].astype(np.int64)
+    found = _parts(grid, depth[grid_r0:r1:CUT_GRID, grid_c0:c1:CUT_GRID], noise, step, (1,), num)
+    if found is None:
+        return blobs
+    # The frame's window of those blobs, read at full resolution.
+    is_candidate = np.zeros(num + 1, dtype=bool)
+    is_candidate[found[3] + 1] = True
+    on = is_candidate[blobs.labels[r0:r1, c0:c1].astype(np.int64) + 1]
+    rows, cols = np.flatnonzero(on.any(axis=1)), np.flatnonzero(on.any(axis=0))
+    top, left = r0 + int(rows[0]), c0 + int(cols[0])
+    bottom, right = r0 + int(rows[-1]) + 1, c0 + int(cols[-1]) + 1
+    on = on[top - r0:bottom - r0, left - c0:right - c0]
+    labels = np.where(on, blobs.labels[top:bottom, left:right], -1).astype(np.int64)
+    found = _parts(labels, depth[top:bottom, left:right], noise, step, (1, 2), num)
+    if found is None:
+        return blobs
+    parts, blob_of_part, big, cut_blobs = found
+
+    # Every pixel of a cut blob goes to its nearest big part (one distance transform per cut blob, in its box).
+    from scipy.ndimage import distance_transform_edt
+
+    keeps = big & np.isin(blob_of_part, cut_blobs)
+    piece_of_part = np.full(parts.lengths.size, -1, dtype=np.int64)
+    piece_of_part[keeps] = np.arange(int(keeps.sum()))
+    part_image = np.where(parts.labels >= 0, piece_of_part[np.maximum(parts.labels, 0)], -1)
+    piece_blob = blob_of_part[keeps]
+    piece_image = np.full(labels.shape, -1, dtype=np.int64)
+    for b in cut_blobs.tolist():
+        rr, cc = np.nonzero(labels == b)
+        box = (slice(int(rr.min()), int(rr.max()) + 1), slice(int(cc.min()), int(cc.max()) + 1))
+        inside = labels[box] == b
+        own = np.where(inside, part_image[box], -1)  # b's big parts
+        _, (ri, ci) = distance_transform_edt(own < 0, return_indices=True)
+        piece_image[box][inside] = own[ri, ci][inside]
+
+    # Renumber: the blobs not cut and the pieces, by mask value, then size (largest first), then the
+    # former blob and piece order.  A piece is numbered num + its index until then.
+    piece_size = np.bincount(piece_image[piece_image >= 0], minlength=piece_blob.size)
+    is_cut = np.zeros(num, dtype=bool)
+    is_cut[cut_blobs] = True
+    whole = np.flatnonzero(~is_cut)
+    old_id = np.r_[whole, num + np.arange(piece_blob.size)]
+    origin = np.r_[whole, piece_blob]
+    size = np.r_[blobs.lengths[whole], piece_size]
+    instance = blobs.instance[origin]
+    order = np.lexsort((old_id, -size, instance))
+    count = order.size
+    new_index = np.empty(count, dtype=np.int64)
+    new_index[order] = np.arange(count)
+    lookup = np.full(num + piece_blob.size + 1, -1, dtype=np.int64)  # former id + 1 -> new index
+    lookup[old_id + 1] = new_index
+    dtype = blobs.labels.dtype if count < np.iinfo(blobs.labels.dtype).max else np.int32
+    renumbered = lookup[blobs.labels[r0:r1, c0:c1].astype(np.int64) + 1]  # a cut blob's pixels: -1 here
+    in_piece = piece_image >= 0  # every pixel of a cut blob, all inside the candidates' window
+    renumbered[top - r0:bottom - r0, left - c0:right - c0][in_piece] = new_index[whole.size + piece_image[in_piece]]
+    image = np.full(blobs.labels.shape, -1, dtype=dtype)
+    image[r0:r1, c0:c1] = renumbered
+    instance = instance[order]
+    first_of_instance = np.flatnonzero(np.r_[True, instance[1:] != instance[:-1]])
+    component = np.arange(count) - np.repeat(first_of_instance, np.diff(np.r_[first_of_instance, count]))
+    cut = np.where(old_id[order] >= num, origin[order], -1)
+    return Blobs(image, size[order], instance, component.astype(np.int64), blobs.bounds, cut)
+
+
+def _parts(labels: np.ndarray, depth: np.ndarray, noise: float, step: float, offsets: tuple[int, ...], num: int
+           ) -> tuple[Blobs, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The parts that the stepped pixels leave of the blobs of ``labels`` (blob indices, -1: none; ``num`` blobs),
+    each part's blob, whether it keeps CUT_MIN_SHARE of its blob's pixels here, and the blobs with two such
+    parts; None when no blob has."""
+    stepped = _stepped_pixels(labels, depth, noise, step, offsets)
+    if not stepped.any():
+        return None
+    parts = find_blobs(np.where(stepped, 0, labels + 1), True, 1)  # mask value: blob + 1, largest part first
+    blob_of_part = parts.instance - 1
+    pixels = np.bincount(labels[labels >= 0], minlength=num)
+    big = parts.lengths >= CUT_MIN_SHARE * pixels[blob_of_part]
+    cut_blobs = np.flatnonzero(np.bincount(blob_of_part[big], minlength=num) >= 2)
+    return (parts, blob_of_part, big, cut_blobs) if cut_blobs.size else None
+
+
+def _stepped_pixels(labels: np.ndarray, depth: np.ndarray, noise: float, step: float, offsets: tuple[int, ...]
+                    ) -> np.ndarray:
+    """(h, w) bool: the pixels of pairs of one blob, ``offsets`` pixels apart along a row or a column, whose
+    depths jump (see :func:`cut_at_depth_steps`), and the pixels between them."""
+    z = np.asarray(depth, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        valid = (labels >= 0) & (z > 0) & np.isfinite(z)
+    out = np.zeros(labels.shape, dtype=bool)
+    spread = np.float32(CUT_NOISE * np.sqrt(2.0) * noise)
+    for axis in (0, 1):
+        n = labels.shape[axis]
+        for o in offsets:
+            if n <= o:
+                continue
+            first = (slice(0, n - o), slice(None)) if axis == 0 else (slice(None), slice(0, n - o))
+            second = (slice(o, n), slice(None)) if axis == 0 else (slice(None), slice(o, n))
+            za, zb = z[first], z[second]
+            near = np.minimum(za, zb)
+            jump = (valid[first] & valid[second] & (labels[first] == labels[second])
+                    & (np.abs(za - zb) > near * np.maximum(np.float32(step), spread * near)))
+            for k in range(o + 1):  # both ends and every pixel between
+                part = (slice(k, n - o + k), slice(None)) if axis == 0 else (slice(None), slice(k, n - o + k))
+                out[part] |= jump
+    return out
+
+
+def view_blobs(view: View, config: ShadowCorrConfig, noise: float | None = None) -> Blobs:
+    """The blobs of a view's mask as the segments are cut from them: :func:`find_blobs`, then, where
+    ``config.cut_step`` is on and the view has depth, :func:`cut_at_depth_steps` (``noise``: the view's
+    relative depth noise, measured here when None)."""
+    blobs = find_blobs(view.mask, config.split_components, config.min_blob_pixels)
+    if config.cut_step <= 0 or view.depth is None:
+        return blobs
+    if noise is None:
+        noise = relative_depth_noise(view.depth[::NOISE_ROW_STEP])
+    return cut_at_depth_steps(blobs, view.depth, noise, config.cut_step)
+
+
 def back_project(view: View, pixels_v: np.ndarray, pixels_u: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """(N, 3) world points (bundle units) of pixels (row v, column u) with z-depth ``depth``, through the view's pose."""
     k = view.intrinsics
@@ -274,11 +440,13 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
     if bundle.point_segments is not None:
         return _from_point_segments(bundle, scale)
 
-    cut = thread_map(lambda view: _view_segments(view, scale, config), bundle.views, config.num_threads)
-    points, lengths, view_idx, instances, components, pixels, centers, axes, truth = ([] for _ in range(9))
+    noise = [relative_depth_noise(v.depth[::NOISE_ROW_STEP]) if v.depth is not None else 0.0 for v in bundle.views]
+    found = thread_map(lambda view_noise: _view_segments(*view_noise, scale, config), list(zip(bundle.views, noise)),
+                       config.num_threads)
+    points, lengths, view_idx, instances, components, pixels, centers, axes, truth, cuts = ([] for _ in range(10))
     pixel_segment: list[SegmentImage | None] = []
     first_segment = 0
-    for vi, (view, part) in enumerate(zip(bundle.views, cut)):
+    for vi, (view, part) in enumerate(zip(bundle.views, found)):
         pixel_segment.append(part.image.shifted(first_segment))
         inst, comp, sizes = part.instance, part.component, part.num_pixels
         first_segment += inst.size
@@ -290,6 +458,7 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         instances.append(inst)
         components.append(comp)
         pixels.append(sizes)
+        cuts.append(part.cut)
         centers.append(np.repeat(view.camera_center[None] * scale, inst.size, axis=0))
         axes.append(np.repeat(view.optical_axis[None], inst.size, axis=0))
         if bundle.ground_truth == "instance":
@@ -314,8 +483,8 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         view_names=[v.name for v in bundle.views],
         truth=np.concatenate(truth) if truth else None,
         pixel_segment=pixel_segment,
-        depth_noise=np.array([relative_depth_noise(v.depth[::NOISE_ROW_STEP]) if v.depth is not None else 0.0
-                              for v in bundle.views]),
+        depth_noise=np.array(noise),
+        cut=np.concatenate(cuts) if (np.concatenate(cuts) >= 0).any() else None,
     )
 
 
@@ -329,14 +498,15 @@ class _ViewSegments(NamedTuple):
     instance: np.ndarray  # (B,)
     component: np.ndarray  # (B,)
     num_pixels: np.ndarray  # (B,)
+    cut: np.ndarray  # (B,) see Segments.cut
 
 
-def _view_segments(view: View, scale: float, config: ShadowCorrConfig) -> _ViewSegments:
-    """One view's blobs, cut and back-projected."""
-    blobs = find_blobs(view.mask, config.split_components, config.min_blob_pixels)
+def _view_segments(view: View, noise: float, scale: float, config: ShadowCorrConfig) -> _ViewSegments:
+    """One view's blobs (``noise``: its relative depth noise), cut and back-projected."""
+    blobs = view_blobs(view, config, noise)
     image = SegmentImage.from_blobs(blobs)
     if blobs.lengths.size == 0:
-        return _ViewSegments(image, np.zeros((0, 3)), *(np.zeros(0, dtype=np.int64) for _ in range(4)))
+        return _ViewSegments(image, np.zeros((0, 3)), *(np.zeros(0, dtype=np.int64) for _ in range(5)))
     # Back-project the pixels of a stride x stride grid, blob after blob, in raster order.
     max_depth_bundle = config.max_depth / scale
     stride = _pixel_stride(view, blobs, max_depth_bundle, scale, config)
@@ -354,7 +524,7 @@ def _view_segments(view: View, scale: float, config: ShadowCorrConfig) -> _ViewS
     pts = back_project(view, rows.astype(np.float64), cols.astype(np.float64), d.astype(np.float64))
     return _ViewSegments(image, pts * scale if scale != 1.0 else pts,
                          np.bincount(blob_of_pixel, minlength=blobs.lengths.size), blobs.instance, blobs.component,
-                         blobs.lengths)
+                         blobs.lengths, np.full(blobs.lengths.size, -1, np.int64) if blobs.cut is None else blobs.cut)
 
 
 def _from_point_segments(bundle: SceneBundle, scale: float) -> Segments:

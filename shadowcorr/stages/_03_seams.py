@@ -160,9 +160,31 @@ def smooth_seams(bundle: SceneBundle, segments: Segments, config: ShadowCorrConf
         return replace(seams, views_read=np.array([j], dtype=np.int64))
 
     found = thread_map(view_seams, range(len(bundle.views)), config.num_threads)
-    return Seams(*(np.concatenate([getattr(f, name) for f in found]) for name in
-                   ("first", "second", "samples", "step", "uncertainty", "unsure_first", "unsure_second",
-                    "apart_first", "apart_second", "touching_first", "touching_second", "views_read")))
+    seams = Seams(*(np.concatenate([getattr(f, name) for f in found]) for name in
+                    ("first", "second", "samples", "step", "uncertainty", "unsure_first", "unsure_second",
+                     "apart_first", "apart_second", "touching_first", "touching_second", "views_read")))
+    return seams if segments.cut is None else _cut_seams_unsure(seams, segments.cut)
+
+
+def _cut_seams_unsure(seams: Seams, cut: np.ndarray) -> Seams:
+    """``seams`` with every seam between two pieces of one blob cut at a depth step (stage 02) made unsure.
+
+    Their seam runs along the step that cut them, so it reads as two surfaces; but what the cut
+    found is a step, which one rock's overhang shows as well as two rocks: the other views decide."""
+    def same_cut(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        return (cut[first] >= 0) & (cut[first] == cut[second])
+
+    pieces = [same_cut(seams.first, seams.second), same_cut(seams.unsure_first, seams.unsure_second),
+              same_cut(seams.apart_first, seams.apart_second)]
+    if not any(p.any() for p in pieces):
+        return seams
+    smooth, unsure, apart = (~p for p in pieces)
+    return replace(
+        seams, first=seams.first[smooth], second=seams.second[smooth], samples=seams.samples[smooth],
+        step=seams.step[smooth], uncertainty=seams.uncertainty[smooth],
+        unsure_first=np.r_[seams.unsure_first, seams.first[~smooth], seams.apart_first[~apart]],
+        unsure_second=np.r_[seams.unsure_second, seams.second[~smooth], seams.apart_second[~apart]],
+        apart_first=seams.apart_first[apart], apart_second=seams.apart_second[apart])
 
 
 def _view_seams(image: SegmentImage, depth: np.ndarray, config: ShadowCorrConfig, noise: float | None = None,

@@ -74,6 +74,8 @@ class VoxelScene:
     # the solid share of the shadow voxels (stage 05 occupancy); None when no shadow was cast or no depth image read
     occupancy: ShadowOccupancy | None = None
     view_poses: np.ndarray | None = None  # (V, 4, 4) camera-to-world poses of the views (refined where refined)
+    # (S,) the blob a segment was cut from at a depth step, shared by its pieces (stage 02, Segments.cut); None: no cut
+    segment_cut: np.ndarray | None = None
 
     @property
     def num_segments(self) -> int:
@@ -158,6 +160,7 @@ def build_voxel_scene(
         segment_view=segments.view,
         segment_instance=segments.instance,
         segment_component=segments.component,
+        segment_cut=segments.cut,
         segment_num_points=segments.lengths,
         segment_centroid=centroid,
         segment_bbox_min=bbox_min,

@@ -880,7 +880,42 @@ def group_by_evidence(scene: VoxelScene, embeddings: np.ndarray | None, config: 
                                       scene.shell_points, scene.shell_count, cameras, step_only)[:s]
         if scene.shell_points is not None:
             labels = join_isolated(labels, graph, scene.shell_points, scene.shell_count, config)
+        if scene.segment_cut is not None:
+            labels = join_lone_pieces(labels, scene.segment_view, scene.segment_cut, scene.segment_num_points)
     return EvidenceGroups(labels[:s], graph, merged)
+
+
+def join_lone_pieces(labels: np.ndarray, view: np.ndarray, cut: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """``labels`` with each piece of a blob cut at a depth step (stage 02, ``cut`` >= 0) that stands
+    alone in its group joined to the group of the largest of its blob's pieces that does not.
+
+    The cut parts a mask drawn over two rocks, so that the other views can tell them apart; where
+    no other view says anything of a piece (it lands on nothing, no shadow it casts meets another),
+    the step alone made it an object, and a rock's own step (an overhang, a ledge) cuts as well
+    as two rocks do.  Measured with the segments' truth on the quality benchmark (9 rows of
+    combined and mask errors, 20 scenes each): of the 50 pieces that the cut took out of one
+    rock, 7 ended in a wrong group, 5 of them alone; of the 285 pieces of masks over two rocks, 4,
+    1 of them alone.  So a piece alone goes back to its blob.
+    """
+    if labels.size == 0 or not (cut >= 0).any():
+        return labels
+    alone = np.bincount(labels, minlength=int(labels.max()) + 1)[labels] == 1
+    pieces = np.flatnonzero(cut >= 0)
+    key = view[pieces] * (int(cut.max()) + 1) + cut[pieces]
+    grouped = ~alone[pieces]
+    if not grouped.any() or grouped.all():
+        return labels
+    # Per blob, its largest grouped piece (ties: the first).
+    g = pieces[grouped]
+    order = np.lexsort((g, -size[g], key[grouped]))
+    blob_keys, first = np.unique(key[grouped][order], return_index=True)
+    best = g[order][first]
+    lone = ~grouped
+    at = np.minimum(np.searchsorted(blob_keys, key[lone]), blob_keys.size - 1)
+    found = blob_keys[at] == key[lone]
+    out = labels.copy()
+    out[pieces[lone][found]] = labels[best[at[found]]]
+    return out
 
 
 def isolated_segments(graph: SegmentGraph) -> np.ndarray:

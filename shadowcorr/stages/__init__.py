@@ -44,6 +44,8 @@ _EXPORTS = {
     "Blobs": "_02_segments",
     "SegmentImage": "_02_segments",
     "find_blobs": "_02_segments",
+    "cut_at_depth_steps": "_02_segments",
+    "view_blobs": "_02_segments",
     "back_project": "_02_segments",
     "extract_segments": "_02_segments",
     "check_valid_depth": "_02_segments",
@@ -87,6 +89,7 @@ _EXPORTS = {
     "link_components": "_09_grouping",
     "merged_mask_segments": "_09_grouping",
     "join_isolated": "_09_grouping",
+    "join_lone_pieces": "_09_grouping",
     "join_nearest_surface": "_09_grouping",
     "segment_confidence": "_09_grouping",
     "EvidenceGroups": "_09_grouping",
@@ -127,7 +130,8 @@ __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._01_mask_alignment import align_to_masks
     from ._01_poses import pose_warnings, refine_poses, unverified_poses
-    from ._02_segments import Blobs, SegmentImage, Segments, back_project, check_valid_depth, extract_segments, find_blobs
+    from ._02_segments import (Blobs, SegmentImage, Segments, back_project, check_valid_depth, cut_at_depth_steps,
+                               extract_segments, find_blobs, view_blobs)
     from ._03_seams import Seams, smooth_seams
     from ._03_surface_evidence import SurfaceEvidence, sample_segment_points, surface_evidence
     from ._04_shells import SegmentShells, raw_shells, remove_statistical_outliers, segment_shells, voxel_downsample
@@ -139,7 +143,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._08_volume_evidence import segment_embeddings, volume_pairs
     from ._09_clustering import cluster_voxels, majority_vote, mean_shift, merge_small_clusters
     from ._09_grouping import (
-        EvidenceGroups, SegmentGraph, agglomerate, group_by_evidence, join_isolated, join_nearest_surface, link_components,
+        EvidenceGroups, SegmentGraph, agglomerate, group_by_evidence, join_isolated, join_lone_pieces, join_nearest_surface, link_components,
         merged_mask_segments, segment_confidence, split_mask_ids, thin_cover_pairs, without_landings,
         without_landings_on,
     )
