@@ -135,7 +135,7 @@ def test_a_merged_masks_blobs_are_scored_by_the_rock_under_them():
     bench = load_bench_quality()
 
     def bundle(mask, table):
-        return SimpleNamespace(views=[SimpleNamespace(name="cam0", mask=mask, instance_objects=table)],
+        return SimpleNamespace(views=[SimpleNamespace(name="cam0", mask=mask, depth=None, instance_objects=table)],
                                ground_truth="mapped")
 
     exact = np.zeros((20, 40), np.int32)
