@@ -66,12 +66,12 @@ def test_the_step_must_stand_out_of_the_depth_noise():
     assert cut_at_depth_steps(blobs, noisier, relative_depth_noise(noisier), 0.02).cut is None
 
 
-def test_only_fused_cuts_by_default():
+def test_only_fused_cuts_unless_told():
     mask, depth = two_planes()
     k = Intrinsics(fx=250.0, fy=250.0, cx=150.0, cy=100.0, width=300, height=200)
     view = View("v", np.eye(4), k, depth, mask)
-    assert view_blobs(view, ShadowCorrConfig()).lengths.size == 3
-    assert view_blobs(view, ShadowCorrConfig(method="shadowcorr")).lengths.size == 2
+    assert view_blobs(view, ShadowCorrConfig(depth_cut_step=None)).lengths.size == 3  # fused's measured step
+    assert view_blobs(view, ShadowCorrConfig(method="shadowcorr", depth_cut_step=None)).lengths.size == 2
     assert view_blobs(view, ShadowCorrConfig(depth_cut_step=0)).lengths.size == 2
 
 
@@ -95,11 +95,12 @@ def test_a_mask_over_two_spheres_is_labelled_as_the_two_spheres():
     merged = np.where(both, 9, first.mask).astype(first.mask.dtype)
     views = [View(first.name, first.pose, first.intrinsics, first.depth, merged), *scene.views[1:]]
     bundle = SceneBundle(units=scene.units, views=views, name="merged", ground_truth="none")
-    segments = extract_segments(bundle, ShadowCorrConfig())
+    config = ShadowCorrConfig(depth_cut_step=None)  # fused's measured step
+    segments = extract_segments(bundle, config)
     in_first = segments.view == 0
     assert in_first.sum() == 2 and (segments.instance[in_first] == 9).all()  # one mask, two pieces
     assert segments.cut is not None and (segments.cut[in_first] == 0).all()
-    result = correspond(bundle, load_model())
+    result = correspond(bundle, load_model(), config=config)
     by_mask = {(s.view, s.instance, s.component): s.object for s in result.segments}
     objects = {}
     for s in result.segments:
