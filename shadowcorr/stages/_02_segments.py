@@ -268,9 +268,8 @@ def cut_at_depth_steps(blobs: Blobs, depth: np.ndarray, noise: float, step: floa
     r0, r1, c0, c1 = blobs.bounds
     # On the grid first (one pixel apart there is two of the frame's): only the blobs it finds in
     # pieces are read again at full resolution.
-    grid_r0, grid_c0 = -(-r0 // CUT_GRID) * CUT_GRID, -(-c0 // CUT_GRID) * CUT_GRID
-    grid = blobs.labels[grid_r0:r1:CUT_GRID, grid_c0:c1:CUT_GRID].astype(np.int64)
-    found = _parts(grid, depth[grid_r0:r1:CUT_GRID, grid_c0:c1:CUT_GRID], noise, step, (1,), num)
+    grid, grid_depth, _, _ = _frame_grid(blobs, depth, CUT_GRID)
+    found = _parts(grid.astype(np.int64), grid_depth, noise, step, (1,), num)
     if found is None:
         return blobs
     # The frame's window of those blobs, read at full resolution.
@@ -471,6 +470,7 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         empty3 = np.zeros((0, 3))
         return Segments(empty3, *(np.zeros(0, dtype=np.int64) for _ in range(5)), empty3, empty3,
                         [v.name for v in bundle.views], None)
+    cut = np.concatenate(cuts)
     return Segments(
         points=np.concatenate(points),
         lengths=np.concatenate(lengths).astype(np.int64),
@@ -484,7 +484,7 @@ def extract_segments(bundle: SceneBundle, config: ShadowCorrConfig | None = None
         truth=np.concatenate(truth) if truth else None,
         pixel_segment=pixel_segment,
         depth_noise=np.array(noise),
-        cut=np.concatenate(cuts) if (np.concatenate(cuts) >= 0).any() else None,
+        cut=cut if (cut >= 0).any() else None,
     )
 
 
