@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import sqlite3
+
 import numpy as np
 import pytest
 
 from shadowcorr import ShadowCorrConfig, correspond, load_model
 from shadowcorr.bundle import Intrinsics, SceneBundle, View
 from shadowcorr.ops import relative_depth_noise
+from shadowcorr.sitemap import SiteMap
+from shadowcorr.sitemap._store import FORMAT_VERSION
+from shadowcorr.sitemap._summaries import stored_views
 from shadowcorr.stages import cut_at_depth_steps, extract_segments, find_blobs, join_lone_pieces, view_blobs
 
 from .scenes import sphere_scene
@@ -86,15 +91,20 @@ def test_a_lone_piece_goes_back_to_its_blob():
     assert out.tolist() == [1, 1, 1, 3, 3, 4, 1]
 
 
-def test_a_mask_over_two_spheres_is_labelled_as_the_two_spheres():
-    # Two spheres one behind the other from the first camera, which draws one mask over both.
+def _two_spheres_under_one_mask() -> SceneBundle:
+    """Two spheres one behind the other from the first camera, which draws one mask (9) over both."""
     scene = sphere_scene([[0, 0, 40], [-150, -150, 40]], [40, 40], cameras=4, width=480, height_px=270,
                          start_deg=45.0)
     first = scene.views[0]
     both = np.isin(first.mask, [1, 2])
     merged = np.where(both, 9, first.mask).astype(first.mask.dtype)
     views = [View(first.name, first.pose, first.intrinsics, first.depth, merged), *scene.views[1:]]
-    bundle = SceneBundle(units=scene.units, views=views, name="merged", ground_truth="none")
+    return SceneBundle(units=scene.units, views=views, name="merged", ground_truth="none")
+
+
+def test_a_mask_over_two_spheres_is_labelled_as_the_two_spheres():
+    bundle = _two_spheres_under_one_mask()
+    first = bundle.views[0]
     config = ShadowCorrConfig(depth_cut_step=None)  # fused's measured step
     segments = extract_segments(bundle, config)
     in_first = segments.view == 0
@@ -109,3 +119,26 @@ def test_a_mask_over_two_spheres_is_labelled_as_the_two_spheres():
     assert all(len(v) == 1 for v in objects.values()) and len(objects) == 2
     pieces = {by_mask[(first.name, 9, 0)], by_mask[(first.name, 9, 1)]}
     assert pieces == {next(iter(v)) for v in objects.values()}  # each piece with its own sphere
+
+
+def test_a_site_map_keeps_which_blob_its_pieces_were_cut_from(tmp_path):
+    bundle = _two_spheres_under_one_mask()
+    config = ShadowCorrConfig(refine_poses=False)
+    cut = extract_segments(bundle, config).cut
+    path = tmp_path / "site.map"
+    with SiteMap(path, config, model=load_model()) as site:
+        site.add(bundle)
+        ids = [r[0] for r in site._store.db.execute("SELECT view FROM views ORDER BY view")]
+        stored = stored_views(site._store.view_rows(ids), site._store.segment_rows(ids))
+    assert stored.segments.cut is not None and np.array_equal(stored.segments.cut, cut)
+    assert np.array_equal(stored.subset([0]).segments.cut, cut[:np.count_nonzero(stored.segments.view == 0)])
+    assert stored.subset([1, 2, 3]).segments.cut is None  # no piece there
+    # A format-3 file (no cut column) opens upgraded: its segments were cut from no blob it remembers.
+    db = sqlite3.connect(path)
+    db.execute("ALTER TABLE segments DROP COLUMN cut")
+    db.execute("UPDATE meta SET value = '3' WHERE key = 'format'")
+    db.commit()
+    db.close()
+    with SiteMap(path, config, model=load_model()) as site:
+        assert site._store.meta("format") == FORMAT_VERSION
+        assert {r["cut"] for r in site._store.segment_rows(ids, with_points=False)} == {-1}

@@ -235,7 +235,7 @@ def test_the_map_file_keeps_arrays_as_raw_bytes_and_reopens_intact(tmp_path, mod
 
 
 def _as_format_2(path) -> None:
-    """Rewrite a map file as format 2 wrote it: segment images on the depth's grid, no labels_stride."""
+    """Rewrite a map file as format 2 wrote it: segment images on the depth's grid, no labels_stride, no cut."""
     db = sqlite3.connect(path)
     rows = db.execute("SELECT view, stride, depth_shape, labels, labels_dtype, labels_shape, labels_top, labels_left "
                       "FROM views").fetchall()
@@ -252,6 +252,7 @@ def _as_format_2(path) -> None:
         db.execute("UPDATE views SET labels = ?, labels_dtype = ?, labels_shape = ?, labels_top = ?, labels_left = ? "
                    "WHERE view = ?", (data, dtype, shape, int(r0), int(c0), view))
     db.execute("ALTER TABLE views DROP COLUMN labels_stride")
+    db.execute("ALTER TABLE segments DROP COLUMN cut")
     db.execute("UPDATE meta SET value = '2' WHERE key = 'format'")
     db.commit()
     db.close()

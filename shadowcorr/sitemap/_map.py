@@ -60,6 +60,7 @@ class ScanPlan:
     new_instance: np.ndarray
     new_component: np.ndarray
     new_pixels: np.ndarray
+    new_cut: np.ndarray  # (num_new,) the blob of its view a depth step cut it from (-1: none)
     new_points: list[np.ndarray]  # what the map keeps of each new segment
     summaries: list[ViewSummary]
     stored_segments: np.ndarray  # map ids of the stored segments in the scene
@@ -234,7 +235,8 @@ class SiteMap:
         return ScanPlan(
             name=name or bundle.name, map_scan=map_scan, scene=scene, num_new=new.num_segments,
             new_view=new.view.copy(), new_instance=new.instance.copy(), new_component=new.component.copy(),
-            new_pixels=new.num_pixels.copy(), new_points=points, summaries=summaries,
+            new_pixels=new.num_pixels.copy(),
+            new_cut=np.full(new.num_segments, -1, np.int64) if new.cut is None else new.cut.copy(), new_points=points, summaries=summaries,
             stored_segments=stored.segment_ids if stored else np.zeros(0, np.int64),
             stored_objects=stored.segment_objects if stored else np.zeros(0, np.int64),
             linked_views=[MapViewRef(scan=int(s), view=v) for s, v in zip(stored.view_scans, stored.view_names)]
@@ -310,7 +312,8 @@ class SiteMap:
             local_index = np.arange(n) - np.searchsorted(plan.new_view, plan.new_view)
             new_ids = store.add_segments([
                 (scan, view_ids[plan.new_view[i]], int(local_index[i]), int(plan.new_instance[i]),
-                 int(plan.new_component[i]), int(plan.new_pixels[i]), int(revision.segment_object[i]),
+                 int(plan.new_component[i]), int(plan.new_pixels[i]), int(plan.new_cut[i]),
+                 int(revision.segment_object[i]),
                  float(support[i]), float(margin[i]), plan.new_points[i]) for i in range(n)])
             run_ids = np.r_[np.asarray(new_ids, dtype=np.int64), plan.stored_segments]
             merged_moves = {obj: store.merge_object(obj, into) for obj, into in revision.merged_into.items()}

@@ -39,10 +39,11 @@ import numpy as np
 __all__ = ["FORMAT_VERSION", "MapBusyError", "MapConflictError", "MapFileError", "MapStore", "pack_array",
            "unpack_array"]
 
-FORMAT_VERSION = "3"
+FORMAT_VERSION = "4"
 #: Formats this version opens, upgrading them on opening: format 2 kept a view's segment image on
-#: its depth's grid (read back as written); format 3 adds ``labels_stride`` (1: every pixel).
-_UPGRADABLE = frozenset({"2"})
+#: its depth's grid (read back as written); format 3 adds ``labels_stride`` (1: every pixel); format 4
+#: adds each segment's ``cut`` (the blob a depth step cut it from, -1: none; -1 for older segments).
+_UPGRADABLE = frozenset({"2", "3"})
 #: Footprint cells are cubes of this many voxels: a view's footprint spans a few of them.
 CELL_VOXELS = 64
 _CELL_BITS = 21
@@ -75,7 +76,7 @@ CREATE TABLE objects (
 CREATE TABLE segments (
     segment INTEGER PRIMARY KEY, scan INTEGER NOT NULL, view INTEGER NOT NULL REFERENCES views,
     local INTEGER NOT NULL, instance INTEGER NOT NULL, component INTEGER NOT NULL,
-    num_pixels INTEGER NOT NULL, num_points INTEGER NOT NULL,
+    num_pixels INTEGER NOT NULL, num_points INTEGER NOT NULL, cut INTEGER NOT NULL DEFAULT -1,
     object INTEGER NOT NULL REFERENCES objects, support REAL, margin REAL,
     cx REAL, cy REAL, cz REAL, lo_x REAL, lo_y REAL, lo_z REAL, hi_x REAL, hi_y REAL, hi_z REAL,
     points BLOB NOT NULL, points_dtype TEXT NOT NULL, points_shape TEXT NOT NULL);
@@ -178,13 +179,18 @@ class MapStore:
             raise MapFileError(f"{self.path}: map format {version!r}; this version reads {FORMAT_VERSION!r}")
 
     def _upgrade(self) -> None:
-        """A format-2 file made format 3 in one transaction: its views' segment images stay on their
-        depth's grid (``labels_stride`` = ``stride``); views added later keep theirs at every pixel."""
+        """An older file made the current format in one transaction.  Format 2 -> 3: its views'
+        segment images stay on their depth's grid (``labels_stride`` = ``stride``); views added later
+        keep theirs at every pixel.  3 -> 4: its segments were cut from no blob they remember
+        (``cut`` -1: a stored piece of a cut blob groups as a blob of its mask)."""
         with self.writing(wait_s=self.busy_timeout_s):
-            if self.meta("format") != "2":  # another process upgraded it meanwhile
+            version = self.meta("format")
+            if version not in _UPGRADABLE:  # another process upgraded it meanwhile
                 return
-            self.db.execute("ALTER TABLE views ADD COLUMN labels_stride INTEGER NOT NULL DEFAULT 0")
-            self.db.execute("UPDATE views SET labels_stride = stride")
+            if version == "2":
+                self.db.execute("ALTER TABLE views ADD COLUMN labels_stride INTEGER NOT NULL DEFAULT 0")
+                self.db.execute("UPDATE views SET labels_stride = stride")
+            self.db.execute("ALTER TABLE segments ADD COLUMN cut INTEGER NOT NULL DEFAULT -1")
             self.set_meta("format", FORMAT_VERSION)
 
     def close(self) -> None:
@@ -260,7 +266,7 @@ class MapStore:
 
     def segment_rows(self, views: Sequence[int], with_points: bool = True) -> list[sqlite3.Row]:
         cols = "*" if with_points else ("segment, scan, view, local, instance, component, num_pixels, num_points, "
-                                        "object, support, margin, cx, cy, cz")
+                                        "cut, object, support, margin, cx, cy, cz")
         return self._rows(f"SELECT {cols} FROM segments WHERE view IN ({{}}) ORDER BY view, local", views)
 
     def _rows(self, query: str, ids: Sequence[int]) -> list[sqlite3.Row]:
@@ -315,18 +321,18 @@ class MapStore:
         return view
 
     def add_segments(self, rows: list[tuple]) -> list[int]:
-        """Insert segments: (scan, view, local, instance, component, num_pixels, object, support, margin,
-        points (n, 3) float32); returns their ids.  Centroid and box come from the points."""
+        """Insert segments: (scan, view, local, instance, component, num_pixels, cut, object, support,
+        margin, points (n, 3) float32); returns their ids.  Centroid and box come from the points."""
         ids = []
-        for scan, view, local, instance, component, pixels, obj, support, margin, points in rows:
+        for scan, view, local, instance, component, pixels, cut, obj, support, margin, points in rows:
             data, dtype, shape = pack_array(points)
             geometry = _geometry(points)
             cur = self.db.execute(
-                "INSERT INTO segments (scan, view, local, instance, component, num_pixels, num_points, object, support, "
-                "margin, cx, cy, cz, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z, points, points_dtype, points_shape) "
-                f"VALUES ({', '.join('?' * 22)})",
-                (scan, view, local, instance, component, pixels, len(points), obj, support, margin, *geometry, data,
-                 dtype, shape))
+                "INSERT INTO segments (scan, view, local, instance, component, num_pixels, num_points, cut, object, "
+                "support, margin, cx, cy, cz, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z, points, points_dtype, points_shape) "
+                f"VALUES ({', '.join('?' * 23)})",
+                (scan, view, local, instance, component, pixels, len(points), cut, obj, support, margin, *geometry,
+                 data, dtype, shape))
             ids.append(int(cur.lastrowid))
         return ids
 

@@ -169,7 +169,8 @@ class StoredViews:
         segments = Segments(points=points, lengths=seg.lengths[mine], view=view, instance=seg.instance[mine],
                             component=seg.component[mine], num_pixels=seg.num_pixels[mine],
                             camera_center=seg.camera_center[mine], optical_axis=seg.optical_axis[mine],
-                            view_names=[seg.view_names[j] for j in keep], pixel_segment=images)
+                            view_names=[seg.view_names[j] for j in keep], pixel_segment=images,
+                            cut=None if seg.cut is None or not (seg.cut[mine] >= 0).any() else seg.cut[mine])
         return StoredViews([self.views[j] for j in keep], segments, self.declared[keep],
                            [self.grid_views[j] for j in keep], self.view_ids[keep],
                            self.view_scans[keep], [self.view_names[j] for j in keep], self.segment_ids[mine],
@@ -182,7 +183,8 @@ def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
     by_view: dict[int, list] = {}
     for r in segment_rows:
         by_view.setdefault(r["view"], []).append(r)
-    points, lengths, view_idx, instance, component, pixels, centres, axes, seg_ids, objects = ([] for _ in range(10))
+    points, lengths, view_idx, instance, component, pixels, cuts, centres, axes, seg_ids, objects = (
+        [] for _ in range(11))
     for j, r in enumerate(view_rows):
         pose = unpack_array(r["pose"], "float64", "4,4").copy()
         declared.append(unpack_array(r["declared"], "float64", "4,4"))
@@ -217,6 +219,7 @@ def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
             instance.append(s["instance"])
             component.append(s["component"])
             pixels.append(s["num_pixels"])
+            cuts.append(s["cut"])
             centres.append(pose[:3, 3])
             axes.append(pose[:3, 2])
             seg_ids.append(s["segment"])
@@ -235,6 +238,7 @@ def stored_views(view_rows: list, segment_rows: list) -> StoredViews:
         optical_axis=np.asarray(axes, dtype=np.float64).reshape(-1, 3),
         view_names=[v.name for v in views],
         pixel_segment=[img.shifted(int(first[j])) for j, img in enumerate(images)],
+        cut=np.asarray(cuts, dtype=np.int64) if any(c >= 0 for c in cuts) else None,
     )
     return StoredViews(views, segments, np.array(declared).reshape(-1, 4, 4), grid_views,
                        np.array([r["view"] for r in view_rows], dtype=np.int64),
