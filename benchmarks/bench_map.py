@@ -13,7 +13,8 @@ once (``correspond``), and once more with its views listed in the order the scan
 under the quality benchmark's combined ``field`` errors (``bench_quality.COMBINED["field"]``:
 depth 1 %, poses 1 deg / 2.5 cm, eroded, split, merged and dropped masks, holes; the same
 perturbed views for the map and for the one-shot run, one draw per
-``--field-seeds``).  Printed per order: the map's average purity against the truth, the one-shot
+``--field-seeds``).  Printed per order: the map's average purity against the truth (a blob of a
+merged mask scored by the rock under its own pixels, as the quality benchmark scores it), the one-shot
 run's, their agreement (the average purity of the map's partition scored against the one-shot
 partition: 100 is the same partition), the share of segments that still carry the id they got
 when their scan was added, the share whose id changed without an event naming it (must be 0),
@@ -49,6 +50,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -79,8 +81,9 @@ def purity(truth: np.ndarray, labels: np.ndarray) -> float:
     return float(segment_metrics(truth, labels)["average_purity"])
 
 
-def run_order(bundle, order, model, path: Path, one_shot: dict) -> dict:
-    """Add the bundle's views scan by scan in ``order``; the figures of the finished map."""
+def run_order(bundle, order, model, path: Path, one_shot: dict, truth_of_segments) -> dict:
+    """Add the bundle's views scan by scan in ``order``; the figures of the finished map
+    (``truth_of_segments``: the true rock of each of a list of segments)."""
     from shadowcorr import SiteMap
 
     first_id, seconds = {}, []
@@ -101,7 +104,7 @@ def run_order(bundle, order, model, path: Path, one_shot: dict) -> dict:
                        for s in segments]
         keys = [(s.view, s.instance, s.component) for s in segments]
         labels = np.array([s.object for s in segments])
-        truth = np.array([truth_of(bundle, s.view, s.instance) for s in segments])
+        truth = truth_of_segments(segments)
         common = [i for i, k in enumerate(keys) if k in one_shot]
         agreement = purity(np.array([one_shot[keys[i]] for i in common]), labels[common])
         # A revisit: the first scan's views again.  Its segments should get the ids their counterparts
@@ -112,8 +115,7 @@ def run_order(bundle, order, model, path: Path, one_shot: dict) -> dict:
         revisit = [now.get((s.view, s.instance, s.component)) == s.object for s in again.segments]
         revised = sum(e.kind in ("merged", "split", "retired") for e in again.events)
         after = [s for s in site.segments() if s.scan <= len(order)]
-        after_purity = purity(np.array([truth_of(bundle, s.view, s.instance) for s in after]),
-                              np.array([s.object for s in after]))
+        after_purity = purity(truth_of_segments(after), np.array([s.object for s in after]))
     kinds = {k: sum(e.kind == k for e in events) for k in ("created", "observed", "merged", "split", "retired")}
     return {"purity": purity(truth, labels), "agreement": agreement, "kept": 100 * float(np.mean(kept)),
             "unexplained": int(np.sum(unexplained)), "revisit": 100 * float(np.mean(revisit)), "revisit_revisions": revised,
@@ -128,14 +130,20 @@ def real_scene(model, field_seeds: int, work: Path) -> list[dict]:
 
     quality = load_bench_quality()
     clean = load_ue_scene(SAMPLE, 2001, list(range(8)))
-    draws = [("clean", clean)] + [
-        (f"field#{k}", quality.perturb(clean, "field", quality.perturbation_seed("real:all8", "field", k)))
-        for k in range(field_seeds)]
+    draws = [("clean", clean, {})]
+    for k in range(field_seeds):
+        merged: dict = {}  # the masks the perturbation drew over several rocks
+        draws.append((f"field#{k}", quality.perturb(clean, "field", quality.perturbation_seed("real:all8", "field", k),
+                                                    merged), merged))
     rows = []
-    for condition, bundle in draws:
+    for condition, bundle, merged in draws:
+        # As the quality benchmark scores: a blob of a merged mask by the rock under its own pixels.
+        def truth_of_segments(segments, bundle=bundle, merged=merged):
+            return quality.segment_truth(bundle, SimpleNamespace(segments=segments), clean, merged)
+
         result = correspond(bundle, model)
         one_shot = {(s.view, s.instance, s.component): s.object for s in result.segments}
-        truth = np.array([truth_of(bundle, s.view, s.instance) for s in result.segments])
+        truth = truth_of_segments(result.segments)
         one_purity = purity(truth, np.array([s.object for s in result.segments]))
         for name, order in ORDERS.items():
             path = work / f"{condition}-{name}.map"
@@ -147,7 +155,7 @@ def real_scene(model, field_seeds: int, work: Path) -> list[dict]:
             keys = [k for k in one_shot if k in reordered]
             self_agreement = purity(np.array([one_shot[k] for k in keys]), np.array([reordered[k] for k in keys]))
             row = {"condition": condition, "order": name, "one_shot": one_purity, "one_shot_reordered": self_agreement,
-                   **run_order(bundle, order, model, path, one_shot)}
+                   **run_order(bundle, order, model, path, one_shot, truth_of_segments)}
             rows.append(row)
             print(f"{condition:9} {name:10} map {row['purity']:6.2f}  one-shot {one_purity:6.2f}  agreement "
                   f"{row['agreement']:6.2f} (one-shot reordered {self_agreement:6.2f})\n{'':21}ids kept "
