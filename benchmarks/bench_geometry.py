@@ -81,19 +81,24 @@ def true_boxes(scene) -> tuple[np.ndarray, np.ndarray]:
 
 
 def scene_bundle(seed: int, cameras: int, condition: str | None):
-    """The generated scene and its bundle, perturbed by ``condition`` (the quality benchmark's seed for it)."""
+    """The generated scene, its bundle perturbed by ``condition`` (the quality benchmark's seed for
+    it) and the masks the perturbation drew over several rocks."""
     scene = synthesize(SynthConfig(renderer="raster", cameras=cameras), seed)
+    merged: dict = {}
     if condition is None:
-        return scene, scene.bundle
+        return scene, scene.bundle, merged
     key = f"syn:{cameras}v/{seed}"
-    return scene, bench_quality.perturb(scene.bundle, condition, bench_quality.perturbation_seed(key, condition, 0))
+    bundle = bench_quality.perturb(scene.bundle, condition, bench_quality.perturbation_seed(key, condition, 0), merged)
+    return scene, bundle, merged
 
 
-def compare(scene, bundle, result, seed: int) -> list[dict]:
-    """One row per object of ``result``: its box and volume against its rock's mesh."""
+def compare(scene, bundle, result, seed: int, merged: dict | None = None) -> list[dict]:
+    """One row per object of ``result``: its box and volume against its rock's mesh (``merged``: the
+    masks drawn over several rocks, whose blobs are scored by the rock under their own pixels)."""
     box_true, box_aligned = true_boxes(scene)
     mesh_volume = np.array([r["volume"] for r in scene.truth["rocks"]])
-    truth = bench_quality.segment_truth(bundle, result)  # rock id (1-based) of every segment, -1 none
+    # Rock id (1-based) of every segment, -1 none.
+    truth = bench_quality.segment_truth(bundle, result, scene.bundle, merged)
     points = np.array([s.num_points for s in result.segments], dtype=np.float64)
     objects_of_rock: dict[int, set[int]] = {}
     for s, seg in enumerate(result.segments):
@@ -126,10 +131,10 @@ def measure(seed: int, cameras: int, method: str, condition: str | None = None,
             budget_min_views: int | None = None) -> list[dict]:
     """The rows of :func:`compare` for one generated scene; with ``budget_min_views``, every row of a
     rock seen from that many views whose volume misses the tolerance gets its :func:`volume_budget`."""
-    scene, bundle = scene_bundle(seed, cameras, condition)
+    scene, bundle, merged = scene_bundle(seed, cameras, condition)
     config = ShadowCorrConfig(method=method)
     prepared, result = labelled(bundle, config)
-    rows = compare(scene, bundle, result, seed)
+    rows = compare(scene, bundle, result, seed, merged)
     if budget_min_views is not None:
         for row in rows:
             if row["views"] >= budget_min_views and not _within_volume(np.array([row["volume_ratio"]]))[0]:
