@@ -236,7 +236,8 @@ class SiteMap:
             name=name or bundle.name, map_scan=map_scan, scene=scene, num_new=new.num_segments,
             new_view=new.view.copy(), new_instance=new.instance.copy(), new_component=new.component.copy(),
             new_pixels=new.num_pixels.copy(),
-            new_cut=np.full(new.num_segments, -1, np.int64) if new.cut is None else new.cut.copy(), new_points=points, summaries=summaries,
+            new_cut=np.full(new.num_segments, -1, np.int64) if new.cut is None else new.cut.copy(),
+            new_points=points, summaries=summaries,
             stored_segments=stored.segment_ids if stored else np.zeros(0, np.int64),
             stored_objects=stored.segment_objects if stored else np.zeros(0, np.int64),
             linked_views=[MapViewRef(scan=int(s), view=v) for s, v in zip(stored.view_scans, stored.view_names)]

@@ -11,8 +11,9 @@ Tables (lengths in the map's units, poses camera-to-world in the OpenCV optical 
                mask (rock or not) on the pose stage's sampling grid (every ``grid_stride``-th
                pixel, float32), and the footprint (bounding box of its segments' points)
     view_cells the footprint's cells (cube of CELL_SIZE voxels): which views may see a place
-    segments   per segment its view, mask id, blob, current object, support and evidence margin,
-               centroid and its points averaged on the downsampling grid
+    segments   per segment its view, mask id, blob, the blob a depth step cut it from (-1: none),
+               current object, support and evidence margin, centroid and its points averaged on
+               the downsampling grid
     objects    every id ever given, the scan that created it and, once retired, when and into which
     events     the history: created, observed, merged, split, retired, with scan, views, segments
 
