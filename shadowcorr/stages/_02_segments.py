@@ -286,8 +286,9 @@ def cut_at_depth_steps(blobs: Blobs, depth: np.ndarray, noise: float, step: floa
         return blobs
     parts, blob_of_part, big, cut_blobs = found
 
-    # Every pixel of a cut blob goes to its nearest big part (one distance transform per cut blob, in its box).
-    from scipy.ndimage import distance_transform_edt
+    # Every pixel of a cut blob goes to its nearest big part (one distance transform per cut blob, in its box;
+    # the boxes of every blob found in one pass over the window).
+    from scipy.ndimage import distance_transform_edt, find_objects
 
     keeps = big & np.isin(blob_of_part, cut_blobs)
     piece_of_part = np.full(parts.lengths.size, -1, dtype=np.int64)
@@ -295,9 +296,9 @@ def cut_at_depth_steps(blobs: Blobs, depth: np.ndarray, noise: float, step: floa
     part_image = np.where(parts.labels >= 0, piece_of_part[np.maximum(parts.labels, 0)], -1)
     piece_blob = blob_of_part[keeps]
     piece_image = np.full(labels.shape, -1, dtype=np.int64)
+    boxes = find_objects(labels + 1)  # boxes[b]: blob b's rows and columns in the window
     for b in cut_blobs.tolist():
-        rr, cc = np.nonzero(labels == b)
-        box = (slice(int(rr.min()), int(rr.max()) + 1), slice(int(cc.min()), int(cc.max()) + 1))
+        box = boxes[b]
         inside = labels[box] == b
         own = np.where(inside, part_image[box], -1)  # b's big parts
         _, (ri, ci) = distance_transform_edt(own < 0, return_indices=True)

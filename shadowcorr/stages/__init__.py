@@ -143,9 +143,9 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from ._08_volume_evidence import segment_embeddings, volume_pairs
     from ._09_clustering import cluster_voxels, majority_vote, mean_shift, merge_small_clusters
     from ._09_grouping import (
-        EvidenceGroups, SegmentGraph, agglomerate, group_by_evidence, join_isolated, join_lone_pieces, join_nearest_surface, link_components,
-        merged_mask_segments, segment_confidence, split_mask_ids, thin_cover_pairs, without_landings,
-        without_landings_on,
+        EvidenceGroups, SegmentGraph, agglomerate, group_by_evidence, join_isolated, join_lone_pieces,
+        join_nearest_surface, link_components, merged_mask_segments, segment_confidence, split_mask_ids,
+        thin_cover_pairs, without_landings, without_landings_on,
     )
     from ._09_support import (SUPPORT_FEATURES, SupportCalibration, SupportTrees, segment_support, support_calibration,
                               support_features)
